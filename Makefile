@@ -1,0 +1,22 @@
+# Two commands: `make train` (set up + main job) and `make test` (set up + test suite).
+PYTHON ?= python3
+VENV := .venv
+STAMP := $(VENV)/.installed-stamp
+
+.PHONY: train test scenarios clean
+
+$(STAMP): pyproject.toml
+	test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
+	$(VENV)/bin/pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+# Main job: until the training pipeline lands, generate the default scenario set and print its
+# quality report.
+train: $(STAMP)
+	$(VENV)/bin/python -m rlplat.scenarios out_dir=data/scenarios/pursuit
+
+test: $(STAMP)
+	$(VENV)/bin/python -m pytest
+
+clean:
+	rm -rf $(VENV) data .pytest_cache .ruff_cache

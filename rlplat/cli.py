@@ -1,0 +1,26 @@
+"""Shared behaviour of the command-line entry points."""
+
+from __future__ import annotations
+
+import functools
+import sys
+from collections.abc import Callable
+from typing import TypeVar
+
+from rlplat.errors import RlplatError
+
+T = TypeVar("T")
+
+
+def exit_on_error(fn: Callable[..., T]) -> Callable[..., T]:
+    """Turn an :class:`RlplatError` into one line on stderr and exit code 2."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except RlplatError as e:
+            print(f"error: {e}", file=sys.stderr)
+            sys.exit(2)
+
+    return wrapper

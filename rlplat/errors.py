@@ -1,0 +1,13 @@
+"""Errors that rlplat reports to users as one line, before any work starts."""
+
+
+class RlplatError(Exception):
+    """Base of the errors that entry points turn into a one-line message and exit code 2."""
+
+
+class ConfigError(RlplatError, ValueError):
+    """A configuration value is invalid; the message names the field and the value."""
+
+
+class ScenarioFileError(RlplatError):
+    """A scenario set on disk is missing, truncated, edited or of another schema version."""

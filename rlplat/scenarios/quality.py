@@ -1,0 +1,115 @@
+"""Quality of a scenario set: completeness, representativeness and independence of the splits."""
+
+from __future__ import annotations
+
+from itertools import combinations
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+from rlplat.scenarios.generator import SplitColumns, grid_keys
+from rlplat.scenarios.spec import PARAM_NAMES, STRATEGIES, ScenarioSpec
+
+
+def quality_report(spec: ScenarioSpec, splits: dict[str, SplitColumns]) -> dict[str, Any]:
+    """Measure the three quality criteria of a generated set.
+
+    Returns a JSON-ready dict with ``completeness`` (levels and bins absent from a split),
+    ``representativeness`` (two-sample KS per continuous parameter and chi-square per
+    categorical, for each pair of non-empty splits) and ``independence`` (duplicate counts).
+    """
+    full = {s: c for s, c in splits.items() if len(c)}
+    pairs = list(combinations(full, 2))
+    return {
+        "completeness": _completeness(spec, full),
+        "representativeness": {
+            "ks": {
+                name: {
+                    f"{a}-{b}": _ks(full[a].values[:, i], full[b].values[:, i]) for a, b in pairs
+                }
+                for i, name in enumerate(PARAM_NAMES)
+            },
+            "chi2": {
+                cat: {
+                    f"{a}-{b}": _chi2(getattr(full[a], col), getattr(full[b], col))
+                    for a, b in pairs
+                }
+                for cat, col in (("route", "route"), ("defender_strategy", "strategy"))
+            },
+        },
+        "independence": _independence(spec, splits),
+    }
+
+
+def _completeness(spec: ScenarioSpec, splits: dict[str, SplitColumns]) -> dict[str, Any]:
+    missing = []
+    for split, cols in splits.items():
+        for r in sorted(set(range(len(spec.routes))) - set(cols.route.tolist())):
+            missing.append(f"{split}: route {r}")
+        for s in sorted(set(spec.strategy_levels) - set(cols.strategy.tolist())):
+            missing.append(f"{split}: defender_strategy {STRATEGIES[s]}")
+        for i, name in enumerate(PARAM_NAMES):
+            p = spec.params[name]
+            edges = np.linspace(p.low, p.high, spec.quality_bins + 1)
+            counts, _ = np.histogram(cols.values[:, i], bins=edges)
+            for b in np.flatnonzero(counts == 0):
+                missing.append(f"{split}: {name} bin [{edges[b]:.4g}, {edges[b + 1]:.4g}]")
+    return {"complete": not missing, "bins": spec.quality_bins, "missing": missing}
+
+
+def _ks(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
+    r = stats.ks_2samp(a, b)
+    return {"statistic": round(float(r.statistic), 6), "pvalue": round(float(r.pvalue), 6)}
+
+
+def _chi2(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
+    levels = np.union1d(a, b)
+    table = np.array([[np.sum(x == v) for v in levels] for x in (a, b)])
+    if len(levels) < 2:  # a single level: the splits agree trivially
+        return {"statistic": 0.0, "pvalue": 1.0}
+    r = stats.chi2_contingency(table, correction=False)
+    return {"statistic": round(float(r.statistic), 6), "pvalue": round(float(r.pvalue), 6)}
+
+
+def _independence(spec: ScenarioSpec, splits: dict[str, SplitColumns]) -> dict[str, Any]:
+    keys = {
+        s: {tuple(k) for k in grid_keys(spec, c.values, c.route, c.strategy).tolist()}
+        for s, c in splits.items()
+    }
+    within = {s: len(c) - len(keys[s]) for s, c in splits.items()}
+    across = {f"{a}-{b}": len(keys[a] & keys[b]) for a, b in combinations(splits, 2)}
+    return {
+        "independent": not any(within.values()) and not any(across.values()),
+        "duplicates_within": within,
+        "duplicates_across": across,
+    }
+
+
+def format_quality(quality: dict[str, Any]) -> str:
+    """The report as a plain-text table."""
+    lines = []
+    comp = quality["completeness"]
+    lines.append(
+        f"completeness      {'complete' if comp['complete'] else 'INCOMPLETE'} "
+        f"({comp['bins']} bins per continuous parameter)"
+    )
+    lines += [f"  missing: {m}" for m in comp["missing"][:20]]
+    if len(comp["missing"]) > 20:
+        lines.append(f"  ... and {len(comp['missing']) - 20} more")
+    rep = quality["representativeness"]
+    pairs = sorted({p for v in rep["ks"].values() for p in v})
+    header = f"{'representativeness':<22}" + "".join(f"{p:>22}" for p in pairs)
+    lines += [header, f"{'  (stat / p-value)':<22}" + "".join(f"{'':>22}" for _ in pairs)]
+    for test, table in (("KS", rep["ks"]), ("chi2", rep["chi2"])):
+        for name, by_pair in table.items():
+            cells = "".join(
+                f"{by_pair[p]['statistic']:>11.4f} / {by_pair[p]['pvalue']:<8.4f}" for p in pairs
+            )
+            lines.append(f"  {test} {name:<18}{cells}")
+    ind = quality["independence"]
+    lines.append(
+        f"independence      {'independent' if ind['independent'] else 'DUPLICATES'}  "
+        f"within {ind['duplicates_within']}  across {ind['duplicates_across']}"
+    )
+    return "\n".join(lines)

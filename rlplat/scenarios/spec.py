@@ -1,0 +1,234 @@
+"""The scenario generator's schema: typed, validated, built from a plain mapping."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from rlplat.errors import ConfigError
+
+#: Continuous parameters of one pursuit scenario, in file and tensor order.
+PARAM_NAMES = (
+    "defender_z",
+    "attacker_dx",
+    "attacker_dy",
+    "attacker_dz",
+    "defender_max_speed",
+    "attacker_max_speed",
+)
+#: Defender strategies; a scenario stores the index into this tuple.
+STRATEGIES = ("setpoints", "nn")
+DISTRIBUTIONS = ("uniform", "gaussian")
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """Range, grid and distribution of one continuous parameter.
+
+    Attributes:
+        low: least value.
+        high: largest value (> low).
+        resolution: grid step; drawn values are snapped to ``low + k * resolution``.
+        dist: ``uniform`` on [low, high] or ``gaussian`` clipped to [low, high].
+        mean: gaussian mean (None: centre of the range).
+        std: gaussian standard deviation (None: a sixth of the range).
+    """
+
+    low: float
+    high: float
+    resolution: float
+    dist: Literal["uniform", "gaussian"] = "uniform"
+    mean: float | None = None
+    std: float | None = None
+
+    @property
+    def levels(self) -> int:
+        """Number of grid values in [low, high]."""
+        return math.floor((self.high - self.low) / self.resolution + 1e-9) + 1
+
+
+@dataclass(frozen=True)
+class ScenarioSpec:
+    """Everything that defines a scenario set (see ``conf/scenario/pursuit.yaml``)."""
+
+    seed: int
+    n_train: int
+    n_val: int
+    n_test: int
+    vision_semi_axes: tuple[float, float, float]
+    min_distance: float
+    min_altitude: float
+    quality_bins: int
+    params: dict[str, ParamSpec]
+    strategy_mix: dict[str, float]
+    routes: tuple[tuple[tuple[float, float, float], ...], ...]
+
+    @property
+    def counts(self) -> dict[str, int]:
+        """Scenarios per split, in split order."""
+        return {"train": self.n_train, "val": self.n_val, "test": self.n_test}
+
+    @property
+    def n_total(self) -> int:
+        return self.n_train + self.n_val + self.n_test
+
+    @property
+    def strategy_levels(self) -> list[int]:
+        """Indices (into STRATEGIES) of the strategies with positive weight."""
+        return [i for i, s in enumerate(STRATEGIES) if self.strategy_mix.get(s, 0.0) > 0]
+
+    def max_combinations(self) -> int:
+        """Distinct parameter combinations on the grid (an upper bound of the feasible ones)."""
+        n = len(self.routes) * len(self.strategy_levels)
+        for p in self.params.values():
+            n *= p.levels
+        return n
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain, JSON-ready form (the ``config`` of a manifest)."""
+        d = dataclasses.asdict(self)
+        d["vision_semi_axes"] = list(self.vision_semi_axes)
+        d["routes"] = [[list(p) for p in r] for r in self.routes]
+        return d
+
+    @classmethod
+    def from_dict(cls, raw: Mapping[str, Any], where: str = "scenario") -> ScenarioSpec:
+        """Validate ``raw`` (e.g. the resolved ``scenario`` config) and build the spec.
+
+        Raises:
+            ConfigError: one line naming the first offending field and its value.
+        """
+        raw = dict(raw)
+        fields = {f.name for f in dataclasses.fields(cls)}
+        _no_unknown(raw, fields, where)
+        missing = sorted(fields - raw.keys())
+        if missing:
+            raise ConfigError(f"{where}: missing field(s) {', '.join(missing)}")
+
+        counts = {k: _int(raw[k], f"{where}.{k}") for k in ("n_train", "n_val", "n_test")}
+        for k, v in counts.items():
+            if v < 0:
+                raise ConfigError(f"{where}.{k}: count must be >= 0, got {v}")
+        if sum(counts.values()) == 0:
+            raise ConfigError(f"{where}: n_train + n_val + n_test must be > 0, got 0")
+
+        axes = _floats(raw["vision_semi_axes"], f"{where}.vision_semi_axes", 3)
+        if min(axes) <= 0:
+            raise ConfigError(f"{where}.vision_semi_axes: must be > 0, got {list(axes)}")
+        min_distance = float(raw["min_distance"])
+        if min_distance < 0 or min_distance >= max(axes):
+            raise ConfigError(
+                f"{where}.min_distance: {min_distance} m cannot be met inside the vision "
+                f"ellipsoid (largest semi-axis {max(axes)} m)"
+            )
+        bins = _int(raw["quality_bins"], f"{where}.quality_bins")
+        if bins < 1:
+            raise ConfigError(f"{where}.quality_bins: must be >= 1, got {bins}")
+
+        params_raw = dict(raw["params"] or {})
+        if set(params_raw) != set(PARAM_NAMES):
+            unknown = sorted(set(params_raw) - set(PARAM_NAMES))
+            missing = sorted(set(PARAM_NAMES) - set(params_raw))
+            raise ConfigError(
+                f"{where}.params: unknown {unknown} / missing {missing}; "
+                f"expected {', '.join(PARAM_NAMES)}"
+            )
+        params = {n: _param(params_raw[n], f"{where}.params.{n}") for n in PARAM_NAMES}
+
+        mix = {str(k): float(v) for k, v in dict(raw["strategy_mix"]).items()}
+        for k, v in mix.items():
+            if k not in STRATEGIES:
+                raise ConfigError(
+                    f"{where}.strategy_mix: unknown strategy '{k}'; valid: {', '.join(STRATEGIES)}"
+                )
+            if v < 0 or not math.isfinite(v):
+                raise ConfigError(f"{where}.strategy_mix.{k}: weight must be >= 0, got {v}")
+        if sum(mix.values()) <= 0:
+            raise ConfigError(f"{where}.strategy_mix: weights must sum to > 0, got {mix}")
+
+        routes = tuple(_route(r, f"{where}.routes[{i}]") for i, r in enumerate(raw["routes"]))
+        if not routes:
+            raise ConfigError(f"{where}.routes: at least one route is needed")
+        if len({len(r) for r in routes}) != 1:
+            raise ConfigError(
+                f"{where}.routes: all routes need the same number of setpoints, "
+                f"got {[len(r) for r in routes]}"
+            )
+
+        spec = cls(
+            seed=_int(raw["seed"], f"{where}.seed"),
+            vision_semi_axes=axes,
+            min_distance=min_distance,
+            min_altitude=float(raw["min_altitude"]),
+            quality_bins=bins,
+            params=params,
+            strategy_mix=mix,
+            routes=routes,
+            **counts,
+        )
+        available = spec.max_combinations()
+        if spec.n_total > available:
+            raise ConfigError(
+                f"{where}: {spec.n_total} scenarios requested (n_train + n_val + n_test) but only "
+                f"{available} distinct combinations exist at the configured resolution"
+            )
+        return spec
+
+
+def _no_unknown(raw: Mapping[str, Any], known: set[str], where: str) -> None:
+    unknown = sorted(set(raw) - known)
+    if unknown:
+        raise ConfigError(f"{where}.{unknown[0]}: unknown field; valid: {', '.join(sorted(known))}")
+
+
+def _int(v: Any, where: str) -> int:
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise ConfigError(f"{where}: expected an integer, got {v!r}")
+    return v
+
+
+def _floats(v: Any, where: str, n: int) -> tuple[float, ...]:
+    try:
+        out = tuple(float(x) for x in v)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{where}: expected {n} numbers, got {v!r}") from None
+    if len(out) != n or not all(math.isfinite(x) for x in out):
+        raise ConfigError(f"{where}: expected {n} finite numbers, got {v!r}")
+    return out
+
+
+def _param(raw: Any, where: str) -> ParamSpec:
+    raw = dict(raw)
+    _no_unknown(raw, {f.name for f in dataclasses.fields(ParamSpec)}, where)
+    low, high = _floats([raw.get("low"), raw.get("high")], f"{where}.low/high", 2)
+    if not low < high:
+        raise ConfigError(f"{where}: empty or inverted range [low={low}, high={high}]")
+    (res,) = _floats([raw.get("resolution")], f"{where}.resolution", 1)
+    if not 0 < res <= high - low:
+        raise ConfigError(f"{where}.resolution: must be in (0, high - low], got {res}")
+    dist = raw.get("dist", "uniform")
+    if dist not in DISTRIBUTIONS:
+        raise ConfigError(
+            f"{where}.dist: unknown distribution '{dist}'; valid: {', '.join(DISTRIBUTIONS)}"
+        )
+    mean = raw.get("mean")
+    std = raw.get("std")
+    if dist == "gaussian":
+        mean = (low + high) / 2 if mean is None else float(mean)
+        std = (high - low) / 6 if std is None else float(std)
+        if not std > 0:
+            raise ConfigError(f"{where}.std: must be > 0 for a gaussian, got {std}")
+    return ParamSpec(low=low, high=high, resolution=res, dist=dist, mean=mean, std=std)
+
+
+def _route(raw: Any, where: str) -> tuple[tuple[float, float, float], ...]:
+    pts = tuple(_floats(p, f"{where}[{i}]", 3) for i, p in enumerate(raw))
+    if not pts:
+        raise ConfigError(f"{where}: a route needs at least one setpoint")
+    for i, p in enumerate(pts):
+        if p[2] <= 0:
+            raise ConfigError(f"{where}[{i}]: setpoint altitude must be > 0 m, got {p[2]}")
+    return pts
