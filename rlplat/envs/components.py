@@ -1,0 +1,173 @@
+"""The drone interface as components: observation, action and reward, each chosen by config.
+
+Every component is small and batched over envs; shapes below use N for the env batch.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from rlplat.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class DroneView:
+    """The world seen from the learning drone: its own state and its opponent's.
+
+    Attributes:
+        own_position, own_velocity, other_position, other_velocity: (N, 3) float32, m and m/s,
+            world frame ENU.
+    """
+
+    own_position: Tensor
+    own_velocity: Tensor
+    other_position: Tensor
+    other_velocity: Tensor
+
+
+def inside_ellipsoid(rel: Tensor, semi_axes: Tensor) -> Tensor:
+    """Whether offsets rel (N, 3) lie in the axis-aligned ellipsoid (3,) semi-axes: (N,) bool.
+
+    The boundary counts as inside.
+    """
+    return ((rel / semi_axes) ** 2).sum(-1) <= 1.0
+
+
+# Observations ----------------------------------------------------------------------------
+
+
+class AbsoluteObservation:
+    """Absolute positions and velocities: [p_own, v_own, p_other, v_other], (N, 12)."""
+
+    dim = 12
+
+    def __call__(self, view: DroneView) -> Tensor:
+        return torch.cat(
+            [view.own_position, view.own_velocity, view.other_position, view.other_velocity], -1
+        )
+
+
+class RelativePositionObservation:
+    """Relative position only: [p_other - p_own], (N, 3)."""
+
+    dim = 3
+
+    def __call__(self, view: DroneView) -> Tensor:
+        return view.other_position - view.own_position
+
+
+class RelativeStateObservation:
+    """Own velocity and the opponent's relative state (paper eq. 1 for the attacker).
+
+    s = [v_own, p_other - p_own, v_other - v_own], (N, 9).
+    """
+
+    dim = 9
+
+    def __call__(self, view: DroneView) -> Tensor:
+        return torch.cat(
+            [
+                view.own_velocity,
+                view.other_position - view.own_position,
+                view.other_velocity - view.own_velocity,
+            ],
+            -1,
+        )
+
+
+OBSERVATIONS = {
+    "absolute": AbsoluteObservation,
+    "relative_position": RelativePositionObservation,
+    "relative_state": RelativeStateObservation,
+}
+
+
+# Actions ---------------------------------------------------------------------------------
+
+
+class VelocityAction:
+    """Paper eq. 2: a velocity command, the policy output in [-1, 1]^3 times the max speed."""
+
+    dim = 3
+
+    def __call__(self, action: Tensor, max_speed: Tensor) -> Tensor:
+        """Map action (N, 3) in [-1, 1] and max_speed (N,) m/s to a command (N, 3) m/s."""
+        return action.clamp(-1.0, 1.0) * max_speed.unsqueeze(-1)
+
+
+ACTIONS = {"velocity": VelocityAction}
+
+
+# Rewards ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RewardContext:
+    """What reward terms may read after a step.
+
+    Attributes:
+        distance: (N,) m between attacker and defender at the end of the step.
+        visible: (N,) bool, the defender inside the attacker's vision ellipsoid.
+        captured: (N,) bool, the attacker came within the capture radius during the step.
+        distance_scale: m, the normalising distance of the ``distance_sq`` term.
+    """
+
+    distance: Tensor
+    visible: Tensor
+    captured: Tensor
+    distance_scale: float
+
+
+def _capture(c: RewardContext) -> Tensor:
+    return c.captured.float()
+
+
+def _out_of_view(c: RewardContext) -> Tensor:
+    return (~c.visible & ~c.captured).float()
+
+
+def _distance_sq(c: RewardContext) -> Tensor:
+    in_view = c.visible & ~c.captured
+    return torch.where(in_view, (c.distance / c.distance_scale) ** 2, 0.0)
+
+
+def _in_view_step(c: RewardContext) -> Tensor:
+    return (c.visible & ~c.captured).float()
+
+
+#: Reward terms: each returns an unweighted (N,) float32 value; a YAML gives the weights.
+REWARD_TERMS: dict[str, Callable[[RewardContext], Tensor]] = {
+    "capture": _capture,
+    "out_of_view": _out_of_view,
+    "distance_sq": _distance_sq,
+    "in_view_step": _in_view_step,
+}
+
+
+class Reward:
+    """A weighted sum of named terms; each weighted term is reported on its own.
+
+    With ``capture: 10, out_of_view: -1, distance_sq: -2, in_view_step: -0.1`` and
+    ``distance_scale: 60`` this is paper eq. 3 exactly: +10 on capture; -1 if the defender is
+    out of view; otherwise -2 d^2 / 60^2 - 0.1.
+    """
+
+    def __init__(self, *, terms: Mapping[str, float], distance_scale: float = 60.0) -> None:
+        for name in terms:
+            if name not in REWARD_TERMS:
+                raise ConfigError(
+                    f"reward.terms.{name}: unknown reward term; valid: {', '.join(REWARD_TERMS)}"
+                )
+        if not distance_scale > 0:
+            raise ConfigError(f"reward.distance_scale: must be > 0, got {distance_scale}")
+        self.weights = {k: float(v) for k, v in terms.items()}
+        self.distance_scale = float(distance_scale)
+
+    def __call__(self, ctx: RewardContext) -> tuple[Tensor, dict[str, Tensor]]:
+        """Return the total reward (N,) and each weighted term (N,) by name."""
+        parts = {name: w * REWARD_TERMS[name](ctx) for name, w in self.weights.items()}
+        return torch.stack(list(parts.values())).sum(0), parts

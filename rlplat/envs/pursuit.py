@@ -1,0 +1,312 @@
+"""The pursuit environment: an attacker and a defender drone, batched, in lock-step."""
+
+from __future__ import annotations
+
+import math
+from typing import Literal, Protocol
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torch import Tensor
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from rlplat.envs.components import DroneView, Reward, RewardContext, inside_ellipsoid
+from rlplat.envs.controllers import follow_route, pure_pursuit
+from rlplat.errors import ConfigError
+from rlplat.scenarios import STRATEGIES, ScenarioSet
+
+ATTACKER, DEFENDER = 0, 1
+ROLES = ("attacker", "defender")
+ORDERS = ("sequential", "shuffled", "random")
+
+
+class Dynamics(Protocol):
+    """What the env needs of a dynamics model (see :mod:`rlplat.envs.dynamics`)."""
+
+    position: Tensor  # (N, D, 3)
+    velocity: Tensor  # (N, D, 3)
+
+    def reset(self, mask: Tensor, position: Tensor, velocity: Tensor, max_speed: Tensor): ...
+
+    def advance(self, command: Tensor, period: float) -> None: ...
+
+
+class ScenarioSampler:
+    """Hands out scenario indices of a split to the envs that reset, in the configured order."""
+
+    def __init__(self, n: int, order: str, device: torch.device) -> None:
+        if order not in ORDERS:
+            raise ConfigError(f"env.scenario_order: unknown order '{order}'; valid: {ORDERS}")
+        self.n, self.order, self.device = n, order, device
+        self.seed(0)
+
+    def seed(self, seed: int) -> None:
+        self.generator = torch.Generator().manual_seed(seed)
+        self.queue = torch.empty(0, dtype=torch.int64)
+
+    def next(self, k: int) -> Tensor:
+        """Indices (k,) int64 of the next k scenarios."""
+        if self.order == "random":
+            idx = torch.randint(self.n, (k,), generator=self.generator)
+        else:
+            while len(self.queue) < k:  # sequential walks the split; shuffled, one perm per pass
+                epoch = (
+                    torch.arange(self.n)
+                    if self.order == "sequential"
+                    else torch.randperm(self.n, generator=self.generator)
+                )
+                self.queue = torch.cat([self.queue, epoch])
+            idx, self.queue = self.queue[:k], self.queue[k:]
+        return idx.to(self.device)
+
+
+class PursuitEnv(EnvBase):
+    """An attacker drone pursues a defender drone that flies a route.
+
+    Every step commands the drone that does not learn (the defender follows its route; an
+    attacker that does not learn flies pure pursuit), applies the learner's action to its own
+    drone, advances the dynamics one control period and reports what happened.
+
+    Observation:
+        ``observation`` (N, obs.dim) from the observation component, seen from the learner.
+        Also ``distance`` (N, 1) m, ``visible`` and ``captured`` (N, 1) bool, ``positions``
+        (N, 2, 3) m (attacker, defender), ``waypoint`` (N, 1) the defender's next setpoint,
+        ``scenario_index`` (N, 1) row of the split, ``("reward_terms", name)`` (N, 1).
+    Action:
+        ``action`` (N, action.dim) in [-1, 1], mapped by the action component.
+    Reward:
+        ``reward`` (N, 1): the reward component's weighted sum of terms.
+    Episode end:
+        terminated on capture (closest approach during the step <= capture_radius) or when a
+        drone touches the ground (z <= ground_altitude), and, if ``terminate_out_of_view``, when
+        the defender leaves the attacker's vision ellipsoid; truncated at ``time_limit`` or when
+        the defender has flown its whole route. The observation of a done step is the true one.
+    Config:
+        ``env`` of ``conf/train.yaml``; the components come from the ``dynamics``,
+        ``observation``, ``action`` and ``reward`` groups.
+    """
+
+    def __init__(
+        self,
+        *,
+        scenarios: ScenarioSet,
+        dynamics: Dynamics,
+        observation,
+        action,
+        reward: Reward,
+        split: str = "train",
+        learner: Literal["attacker", "defender"] = "attacker",
+        control_period: float = 0.1,
+        time_limit: float = 60.0,
+        capture_radius: float = 1.2,
+        ground_altitude: float = 0.0,
+        vision_semi_axes: tuple[float, float, float] = (48.0, 42.0, 13.0),
+        terminate_out_of_view: bool = False,
+        scenario_order: Literal["sequential", "shuffled", "random"] = "sequential",
+        setpoint_acceptance: float = 1.0,
+        setpoint_gain: float = 1.0,
+        pursuit_gain: float = 1.0,
+        device: torch.device | str = "cpu",
+    ) -> None:
+        num_envs = dynamics.position.shape[0]
+        super().__init__(device=device, batch_size=[num_envs])
+        if learner not in ROLES:
+            raise ConfigError(f"drone.learner: unknown role '{learner}'; valid: {ROLES}")
+        for name, v in (("control_period", control_period), ("time_limit", time_limit)):
+            if not v > 0:
+                raise ConfigError(f"env.{name}: must be > 0, got {v}")
+        self.split_name = split
+        self.scenarios = scenarios.split(split).to(self.device)
+        n_nn = int((self.scenarios["defender_strategy"] == STRATEGIES.index("nn")).sum())
+        if n_nn:
+            raise ConfigError(
+                f"scenario split '{split}': {n_nn} scenarios ask for defender_strategy 'nn' but "
+                "no defender network is configured; generate the set with "
+                "scenario.strategy_mix.nn=0"
+            )
+        self.routes = scenarios.routes.to(self.device)
+        self.dynamics = dynamics
+        self.obs_fn, self.action_fn, self.reward_fn = observation, action, reward
+        self.learner = ROLES.index(learner)
+        self.control_period = float(control_period)
+        self.max_steps = math.ceil(time_limit / control_period - 1e-9)
+        self.capture_radius = float(capture_radius)
+        self.ground_altitude = float(ground_altitude)
+        self.semi_axes = torch.tensor(vision_semi_axes, dtype=torch.float32, device=self.device)
+        self.terminate_out_of_view = bool(terminate_out_of_view)
+        self.setpoint_acceptance = float(setpoint_acceptance)
+        self.setpoint_gain, self.pursuit_gain = float(setpoint_gain), float(pursuit_gain)
+        self.sampler = ScenarioSampler(len(self.scenarios), scenario_order, self.device)
+
+        # Per-env episode state.
+        z = dict(device=self.device, dtype=torch.int64)
+        self.scenario_index = torch.zeros(num_envs, **z)
+        self.route = torch.zeros(num_envs, **z)
+        self.waypoint = torch.zeros(num_envs, **z)
+        self.step_count = torch.zeros(num_envs, **z)
+        self.max_speed = torch.ones(num_envs, 2, device=self.device)
+        self._make_specs(num_envs)
+
+    # Specs -------------------------------------------------------------------------------
+
+    def _make_specs(self, n: int) -> None:
+        def flag():
+            return Categorical(2, shape=(n, 1), dtype=torch.bool, device=self.device)
+
+        def real(*shape):
+            return Unbounded(shape=(n, *shape), dtype=torch.float32, device=self.device)
+
+        def index():
+            return Unbounded(shape=(n, 1), dtype=torch.int64, device=self.device)
+
+        self.observation_spec = Composite(
+            observation=real(self.obs_fn.dim),
+            distance=real(1),
+            visible=flag(),
+            captured=flag(),
+            positions=real(2, 3),
+            waypoint=index(),
+            scenario_index=index(),
+            reward_terms=Composite(
+                {k: real(1) for k in self.reward_fn.weights}, shape=(n,), device=self.device
+            ),
+            shape=(n,),
+            device=self.device,
+        )
+        self.action_spec = Bounded(
+            -1.0, 1.0, shape=(n, self.action_fn.dim), dtype=torch.float32, device=self.device
+        )
+        self.reward_spec = real(1)
+        self.done_spec = Composite(
+            done=flag(), terminated=flag(), truncated=flag(), shape=(n,), device=self.device
+        )
+
+    # TorchRL hooks -----------------------------------------------------------------------
+
+    def _set_seed(self, seed: int | None) -> None:
+        self.sampler.seed(0 if seed is None else int(seed))
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        n = self.batch_size[0]
+        mask = torch.ones(n, dtype=torch.bool, device=self.device)
+        if tensordict is not None and "_reset" in tensordict:
+            mask = tensordict["_reset"].reshape(n)
+        k = int(mask.sum())
+        if k:
+            idx = self.sampler.next(k)
+            sc = self.scenarios[idx]
+            self.scenario_index[mask] = idx
+            self.route[mask] = sc["route"]
+            self.waypoint[mask] = 0
+            self.step_count[mask] = 0
+            self.max_speed[mask] = torch.stack(
+                [sc["attacker_max_speed"], sc["defender_max_speed"]], -1
+            )
+            position = self.dynamics.position.clone()
+            position[mask] = torch.stack([sc["attacker_start"], sc["defender_start"]], 1)
+            self.dynamics.reset(mask, position, torch.zeros_like(position), self.max_speed.clone())
+        distance, visible = self._geometry()
+        zeros = torch.zeros(n, device=self.device)
+        out = self._observe(distance, visible, captured=torch.zeros_like(visible))
+        out["reward_terms"] = {k: zeros.unsqueeze(-1) for k in self.reward_fn.weights}
+        flags = torch.zeros(n, 1, dtype=torch.bool, device=self.device)
+        out.update({"done": flags, "terminated": flags.clone(), "truncated": flags.clone()})
+        return out
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict["action"]
+        if action.shape != self.action_spec.shape:
+            raise ValueError(
+                f"action: shape {tuple(action.shape)}, expected {tuple(self.action_spec.shape)}"
+            )
+        if not torch.isfinite(action).all():
+            raise ValueError("action: contains NaN or inf")
+        # Command every drone: the opponent by its script, the learner by the policy.
+        commands = torch.empty_like(self.dynamics.position)
+        commands[:, 1 - self.learner] = self._scripted_command()
+        commands[:, self.learner] = self.action_fn(action, self.max_speed[:, self.learner])
+        rel_before = self._relative()
+        self.dynamics.advance(commands, self.control_period)
+        self.step_count += 1
+        self._advance_waypoints()
+
+        distance, visible = self._geometry()
+        captured = _closest_approach(rel_before, self._relative()) <= self.capture_radius
+        total, terms = self.reward_fn(
+            RewardContext(distance, visible, captured, self.reward_fn.distance_scale)
+        )
+        grounded = (self.dynamics.position[..., 2] <= self.ground_altitude).any(-1)
+        terminated = captured | grounded
+        if self.terminate_out_of_view:
+            terminated |= ~visible
+        truncated = (self.step_count >= self.max_steps) | (self.waypoint >= self.routes.shape[1])
+        truncated &= ~terminated
+        out = self._observe(distance, visible, captured)
+        out["reward_terms"] = {k: v.unsqueeze(-1) for k, v in terms.items()}
+        out.update(
+            {
+                "reward": total.unsqueeze(-1),
+                "terminated": terminated.unsqueeze(-1),
+                "truncated": truncated.unsqueeze(-1),
+                "done": (terminated | truncated).unsqueeze(-1),
+            }
+        )
+        return out
+
+    # Helpers -----------------------------------------------------------------------------
+
+    def _relative(self) -> Tensor:
+        """Defender position minus attacker position, (N, 3)."""
+        p = self.dynamics.position
+        return p[:, DEFENDER] - p[:, ATTACKER]
+
+    def _geometry(self) -> tuple[Tensor, Tensor]:
+        """Distance (N,) and whether the defender is inside the attacker's ellipsoid (N,)."""
+        rel = self._relative()
+        return rel.norm(dim=-1), inside_ellipsoid(rel, self.semi_axes)
+
+    def _setpoints(self) -> Tensor:
+        return self.routes[self.route]
+
+    def _scripted_command(self) -> Tensor:
+        p = self.dynamics.position
+        opponent = 1 - self.learner
+        speed = self.max_speed[:, opponent]
+        if opponent == DEFENDER:
+            return follow_route(
+                p[:, DEFENDER], self._setpoints(), self.waypoint, speed, self.setpoint_gain
+            )
+        return pure_pursuit(p[:, ATTACKER], p[:, DEFENDER], speed, self.pursuit_gain)
+
+    def _advance_waypoints(self) -> None:
+        n_sp = self.routes.shape[1]
+        idx = self.waypoint.clamp(max=n_sp - 1)
+        target = self._setpoints()[torch.arange(len(idx), device=self.device), idx]
+        reached = (self.dynamics.position[:, DEFENDER] - target).norm(dim=-1)
+        self.waypoint += ((reached <= self.setpoint_acceptance) & (self.waypoint < n_sp)).long()
+
+    def _observe(self, distance: Tensor, visible: Tensor, captured: Tensor) -> TensorDict:
+        p, v = self.dynamics.position, self.dynamics.velocity
+        me, other = self.learner, 1 - self.learner
+        view = DroneView(p[:, me], v[:, me], p[:, other], v[:, other])
+        return TensorDict(
+            {
+                "observation": self.obs_fn(view),
+                "distance": distance.unsqueeze(-1),
+                "visible": visible.unsqueeze(-1),
+                "captured": captured.unsqueeze(-1),
+                "positions": p.clone(),
+                "waypoint": self.waypoint.unsqueeze(-1).clone(),
+                "scenario_index": self.scenario_index.unsqueeze(-1).clone(),
+            },
+            batch_size=self.batch_size,
+            device=self.device,
+        )
+
+
+def _closest_approach(before: Tensor, after: Tensor) -> Tensor:
+    """Least norm (N,) of the relative position moving linearly from ``before`` to ``after``."""
+    delta = after - before
+    t = (-(before * delta).sum(-1) / (delta * delta).sum(-1).clamp_min(1e-12)).clamp(0.0, 1.0)
+    return (before + t.unsqueeze(-1) * delta).norm(dim=-1)

@@ -1,0 +1,299 @@
+import itertools
+from pathlib import Path
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+from tensordict.nn import TensorDictModule
+from torchrl.envs.utils import check_env_specs
+
+from rlplat import make_env
+from rlplat.envs.components import (
+    ACTIONS,
+    OBSERVATIONS,
+    REWARD_TERMS,
+    Reward,
+    RewardContext,
+    inside_ellipsoid,
+)
+from rlplat.envs.controllers import follow_route
+from rlplat.envs.pursuit import _closest_approach
+from rlplat.errors import ConfigError
+from rlplat.scenarios import ScenarioSet, write_scenario_set
+
+CONF = Path(__file__).resolve().parent.parent / "conf"
+SIZES = ("scenario.n_train=64", "scenario.n_val=16", "scenario.n_test=16")
+
+
+def stems(group: str) -> set[str]:
+    return {p.stem for p in (CONF / group).glob("*.yaml")}
+
+
+@pytest.fixture(scope="module")
+def scenarios(tmp_path_factory) -> ScenarioSet:
+    from rlplat.config import compose_config
+    from rlplat.scenarios import ScenarioSpec
+
+    cfg = compose_config("scenarios", ["out_dir=unused", *SIZES])
+    path = tmp_path_factory.mktemp("scenarios")
+    write_scenario_set(ScenarioSpec.from_dict(OmegaConf.to_container(cfg.scenario)), path)
+    return ScenarioSet.load(path)
+
+
+def _pursue(observation: torch.Tensor) -> torch.Tensor:
+    """Fly at the defender with full speed (reads p_d - p_a from the eq. 1 observation)."""
+    return (observation[..., 3:6] * 5).clamp(-1, 1)
+
+
+pursue = TensorDictModule(_pursue, in_keys=["observation"], out_keys=["action"])
+
+
+# Registries match conf/ ------------------------------------------------------------------
+
+
+def test_registries_match_config_groups():
+    assert (
+        set(OBSERVATIONS)
+        == {OmegaConf.load(CONF / "observation" / f"{s}.yaml").name for s in stems("observation")}
+        == stems("observation")
+    )
+    assert set(ACTIONS) == stems("action")
+    for s in stems("reward"):
+        cfg = OmegaConf.load(CONF / "reward" / f"{s}.yaml")
+        Reward(**cfg)  # every term known, every key a constructor argument
+        assert set(cfg.terms) <= set(REWARD_TERMS)
+    assert stems("drone") == {"attacker_v1", "attacker_v2", "attacker_v3"}
+
+
+@pytest.mark.parametrize(
+    ("drone", "dim"), [("attacker_v1", 12), ("attacker_v2", 3), ("attacker_v3", 9)]
+)
+def test_drone_bundles_pick_their_observation_and_cli_wins(scenarios, drone, dim):
+    env = make_env(f"drone={drone}", scenarios=scenarios.path, num_envs=2)
+    assert env.observation_spec["observation"].shape == (2, dim)
+    assert set(env.reward_fn.weights) == set(REWARD_TERMS)  # shaped by default
+    env = make_env(f"drone={drone}", "reward=sparse", scenarios=scenarios.path)
+    assert set(env.reward_fn.weights) == {"capture", "out_of_view"}
+
+
+# Specs for every combination -------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("drone", "dynamics", "reward"),
+    list(
+        itertools.product(sorted(stems("drone")), sorted(stems("dynamics")), ["shaped", "sparse"])
+    ),
+)
+def test_check_env_specs(scenarios, drone, dynamics, reward):
+    env = make_env(
+        f"drone={drone}",
+        f"dynamics={dynamics}",
+        f"reward={reward}",
+        scenarios=scenarios,
+        num_envs=3,
+    )
+    check_env_specs(env, seed=0)
+
+
+# Reward, visibility, capture -------------------------------------------------------------
+
+
+def test_shaped_reward_is_paper_eq3():
+    cfg = OmegaConf.load(CONF / "reward" / "shaped.yaml")
+    reward = Reward(**cfg)
+    d = torch.tensor([1.0, 30.0, 60.0, 10.0, 0.0])
+    visible = torch.tensor([True, True, True, False, True])
+    captured = torch.tensor([True, False, False, False, False])
+    total, terms = reward(RewardContext(d, visible, captured, 60.0))
+    expected = [10.0, -2 * 30**2 / 60**2 - 0.1, -2.0 - 0.1, -1.0, -0.1]
+    assert total.tolist() == pytest.approx(expected)
+    assert sum(terms.values()).tolist() == pytest.approx(expected)
+    sparse = Reward(**OmegaConf.load(CONF / "reward" / "sparse.yaml"))
+    total, _ = sparse(RewardContext(d, visible, captured, 60.0))
+    assert total.tolist() == pytest.approx([10.0, 0.0, 0.0, -1.0, 0.0])
+
+
+def test_unknown_reward_term_lists_valid_ones():
+    with pytest.raises(
+        ConfigError, match=r"reward.terms.speed: unknown reward term; valid: capture"
+    ):
+        Reward(terms={"speed": 1.0})
+
+
+def test_vision_ellipsoid_boundary():
+    axes = torch.tensor([48.0, 42.0, 13.0])
+    rel = torch.tensor(
+        [
+            [48.0, 0, 0],
+            [48.01, 0, 0],
+            [-48.0, 0, 0],
+            [0, 42.0, 0],
+            [0, -42.01, 0],
+            [0, 0, 13.0],
+            [0, 0, 13.01],
+            [48 / 2**0.5, 42 / 2**0.5 - 0.01, 0],
+            [48 / 2**0.5, 42 / 2**0.5 + 0.01, 0],
+        ]
+    )
+    expected = [True, False, True, True, False, True, False, True, False]
+    assert inside_ellipsoid(rel, axes).tolist() == expected
+
+
+def test_capture_threshold_uses_closest_approach():
+    before = torch.tensor([[1.19, 0, 0], [1.21, 0, 0], [5.0, 1.0, 0], [5.0, 1.3, 0]])
+    after = torch.tensor([[1.19, 0, 0], [1.21, 0, 0], [-5.0, 1.0, 0], [-5.0, 1.3, 0]])
+    closest = _closest_approach(before, after)
+    assert closest.tolist() == pytest.approx([1.19, 1.21, 1.0, 1.3])
+    assert (closest <= 1.2).tolist() == [True, False, True, False]
+
+
+def test_capture_terminates_with_reward_and_true_final_observation(scenarios):
+    env = make_env(scenarios=scenarios, num_envs=16)
+    env.set_seed(0)
+    td = env.rollout(900, pursue, break_when_any_done=False)
+    nxt = td["next"]
+    cap = nxt["captured"].squeeze(-1)
+    assert cap.any(), "pure pursuit with full speed should capture some defenders"
+    assert nxt["terminated"][cap].all() and (nxt["reward"][cap] == 10.0).all()
+    assert (nxt["distance"][cap] < 1.2 + 1.0).all()
+    # The done step's observation is the final one, not the next episode's first.
+    final = nxt["positions"][cap]
+    assert torch.allclose(
+        nxt["distance"][cap].squeeze(-1), (final[:, 1] - final[:, 0]).norm(dim=-1)
+    )
+    assert torch.allclose(nxt["observation"][cap][:, 3:6], final[:, 1] - final[:, 0], atol=1e-5)
+    # Episode sums of the terms add up to the returns.
+    terms = sum(nxt["reward_terms", k] for k in env.reward_fn.weights)
+    assert torch.allclose(terms, nxt["reward"])
+
+
+# Episodes, resets, seeding ---------------------------------------------------------------
+
+
+def test_partial_reset_only_touches_flagged_envs(scenarios):
+    env = make_env(scenarios=scenarios, num_envs=4)
+    td = env.reset()
+    assert td["scenario_index"].squeeze(-1).tolist() == [0, 1, 2, 3]  # sequential walk
+    for _ in range(5):
+        td = env.step(pursue(td))["next"].exclude("reward", "done", "terminated", "truncated")
+    before = env.dynamics.position.clone()
+    mask = torch.tensor([[True], [False], [True], [False]])
+    out = env.reset(td.clone().set("_reset", mask))  # non-reset envs keep their entries
+    assert out["scenario_index"].squeeze(-1).tolist() == [4, 1, 5, 3]
+    assert env.step_count.tolist() == [0, 5, 0, 5]
+    assert torch.equal(env.dynamics.position[[1, 3]], before[[1, 3]])
+    starts = scenarios.split("train")[[4, 5]]
+    assert torch.allclose(env.dynamics.position[[0, 2], 0], starts["attacker_start"])
+    assert torch.allclose(env.dynamics.position[[0, 2], 1], starts["defender_start"])
+    assert not out["done"].any()
+
+
+@pytest.mark.parametrize("order", ["shuffled", "random"])
+def test_same_seed_same_rollout(scenarios, order):
+    def run(seed):
+        env = make_env(
+            f"env.scenario_order={order}", "env.time_limit=3", scenarios=scenarios, num_envs=8
+        )
+        env.set_seed(seed)
+        torch.manual_seed(0)  # random actions come from torch's global generator
+        return env.rollout(100, break_when_any_done=False)
+
+    a, b, c = run(1), run(1), run(2)
+    assert (a == b).all()
+    assert not torch.equal(a["scenario_index"], c["scenario_index"])
+
+
+def test_time_limit_truncates(scenarios):
+    env = make_env("env.time_limit=1.0", scenarios=scenarios, num_envs=4)
+    td = env.rollout(10, break_when_any_done=False)
+    assert td["next", "truncated"][:, -1].all() and not td["next", "truncated"][:, :-1].any()
+    assert not td["next", "terminated"].any()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("dynamics", ["velocity", "quadrotor"])
+def test_no_nan_in_long_random_rollouts(scenarios, dynamics):
+    steps = 1500 if dynamics == "velocity" else 300
+    env = make_env(
+        f"dynamics={dynamics}", "env.scenario_order=random", scenarios=scenarios, num_envs=32
+    )
+    env.set_seed(0)
+    td = env.rollout(steps, break_when_any_done=False)
+    for key in ("observation", "reward", "distance", "positions"):
+        assert torch.isfinite(td["next", key]).all(), key
+    assert td["next", "done"].any()  # episodes ended and were reset along the way
+
+
+def test_defender_follows_its_route_to_the_end(tmp_path):
+    from tests.conftest import spec_from
+
+    route = "scenario.routes=[[[0,0,10],[0,6,10]]]"
+    write_scenario_set(
+        spec_from(*SIZES, route, "scenario.params.defender_max_speed.low=4"), tmp_path
+    )
+    env = make_env(route, "env.time_limit=30", scenarios=tmp_path, num_envs=8)
+    hover = TensorDictModule(lambda o: o[..., :3] * 0, in_keys=["observation"], out_keys=["action"])
+    td = env.rollout(300, hover, break_when_any_done=False)
+    truncated = td["next", "truncated"].squeeze(-1)
+    assert truncated.any(dim=1).all(), "every defender finishes its 2-setpoint route"
+    first_end = truncated.float().argmax(dim=1)
+    waypoints = td["next", "waypoint"].squeeze(-1)
+    assert all(waypoints[i, first_end[i]] == 2 for i in range(8))
+
+
+def test_follow_route_advances_and_holds_at_the_end():
+    setpoints = torch.tensor([[[10.0, 0, 10], [10, 10, 10]]]).expand(3, 2, 3)
+    pos = torch.tensor([[0.0, 0, 10], [10, 0, 10], [10, 10, 10]])
+    cmd = follow_route(pos, setpoints, torch.tensor([0, 1, 2]), torch.full((3,), 2.0), 1.0)
+    assert cmd.tolist() == [[2.0, 0, 0], [0, 2.0, 0], [0, 0, 0]]
+
+
+def test_nn_defender_without_network_is_refused(tmp_path):
+    from tests.conftest import spec_from
+
+    write_scenario_set(spec_from(*SIZES, "scenario.strategy_mix.nn=1"), tmp_path)
+    with pytest.raises(ConfigError, match=r"scenarios ask for defender_strategy 'nn' but no "):
+        make_env(scenarios=tmp_path)
+
+
+def test_bad_env_option_is_refused(scenarios):
+    with pytest.raises(ConfigError, match=r"env.scenario_order: unknown order 'backwards'"):
+        make_env("env.scenario_order=backwards", scenarios=scenarios)
+    with pytest.raises(ConfigError, match=r"dynamics.name: unknown dynamics 'rocket'; valid"):
+        make_env("dynamics.name=rocket", scenarios=scenarios)
+
+
+def test_default_scenarios_are_generated_once_into_the_cache(tmp_path, monkeypatch):
+    import rlplat.envs.factory as factory
+
+    monkeypatch.setattr(factory, "CACHE_DIR", tmp_path)
+    env = make_env(*SIZES, num_envs=2)
+    (cached,) = (tmp_path / "scenarios").iterdir()
+    assert (cached / "manifest.json").exists()
+    assert len(env.scenarios) == 64
+    mtime = (cached / "manifest.json").stat().st_mtime_ns
+    make_env(*SIZES)
+    assert (cached / "manifest.json").stat().st_mtime_ns == mtime
+
+
+@pytest.mark.parametrize(
+    ("action", "match"),
+    [
+        (torch.zeros(2, 4), r"action: shape \(2, 4\), expected \(2, 3\)"),
+        (torch.tensor([[0.0, float("nan"), 0], [0, 0, 0]]), "action: contains NaN or inf"),
+        (torch.tensor([[0.0, 0, 0], [float("inf"), 0, 0]]), "action: contains NaN or inf"),
+    ],
+)
+def test_bad_actions_are_refused(scenarios, action, match):
+    env = make_env(scenarios=scenarios, num_envs=2)
+    td = env.reset()
+    with pytest.raises(ValueError, match=match):
+        env.step(td.set("action", action))
+
+
+def test_missing_scenario_set_is_a_clear_error(tmp_path):
+    from rlplat.errors import ScenarioFileError
+
+    with pytest.raises(ScenarioFileError, match="nowhere"):
+        make_env(scenarios=tmp_path / "nowhere")

@@ -1,0 +1,39 @@
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+from rlplat import make_gym_env
+from rlplat.envs.gym import PursuitGymEnv
+from tests.test_env import scenarios  # noqa: F401  (module-scoped fixture)
+
+
+def test_passes_gymnasium_checker(scenarios):  # noqa: F811
+    env = make_gym_env(scenarios=scenarios.path)
+    check_env(env, skip_render_check=True)
+    env.close()
+
+
+def test_paper_api_init_reset_step_close(scenarios):  # noqa: F811
+    env = PursuitGymEnv(scenarios, "drone=attacker_v1", split="val")
+    obs, info = env.reset(seed=0)
+    assert obs.shape == (12,) and obs.dtype == np.float32
+    assert info["scenario_id"] == scenarios.ids["val"][0]
+    obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+    assert isinstance(reward, float) and reward < 0 and not terminated and not truncated
+    assert info["visible"] and info["distance"] > 0
+    obs2, info2 = env.reset()
+    assert info2["scenario_id"] == scenarios.ids["val"][1]  # the next scenario of the split
+    env.close()
+
+
+@pytest.mark.slow
+def test_stable_baselines3_sac_trains_unmodified(scenarios):  # noqa: F811
+    from stable_baselines3 import SAC
+
+    env = make_gym_env("env.time_limit=5", scenarios=scenarios.path)
+    model = SAC("MlpPolicy", env, learning_starts=64, batch_size=32, seed=0, verbose=0)
+    model.learn(total_timesteps=200)
+    action, _ = model.predict(env.reset(seed=0)[0], deterministic=True)
+    assert env.action_space.contains(action)
+    assert model.num_timesteps == 200 and model.replay_buffer.size() == 200
+    env.close()
