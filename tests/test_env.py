@@ -242,11 +242,14 @@ def test_defender_follows_its_route_to_the_end(tmp_path):
     assert all(waypoints[i, first_end[i]] == 2 for i in range(8))
 
 
-def test_follow_route_advances_and_holds_at_the_end():
-    setpoints = torch.tensor([[[10.0, 0, 10], [10, 10, 10]]]).expand(3, 2, 3)
+def test_follow_route_flies_to_its_target_and_holds_at_the_end():
+    target = torch.tensor([[10.0, 0, 10], [10, 10, 10], [10, 10, 10]])
     pos = torch.tensor([[0.0, 0, 10], [10, 0, 10], [10, 10, 10]])
-    cmd = follow_route(pos, setpoints, torch.tensor([0, 1, 2]), torch.full((3,), 2.0), 1.0)
+    done = torch.tensor([False, False, True])
+    cmd = follow_route(pos, target, done, torch.full((3,), 2.0), 1.0)
     assert cmd.tolist() == [[2.0, 0, 0], [0, 2.0, 0], [0, 0, 0]]
+    cmd = follow_route(pos, target - 0.5, ~done, torch.full((3,), 2.0), 1.0)
+    assert cmd.tolist() == [[0, 0, 0], [0, 0, 0], [-0.5, -0.5, -0.5]]
 
 
 def test_nn_defender_without_network_is_refused(tmp_path):

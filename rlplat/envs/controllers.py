@@ -7,25 +7,22 @@ from torch import Tensor
 
 
 def follow_route(
-    position: Tensor, setpoints: Tensor, waypoint: Tensor, max_speed: Tensor, gain: float
+    position: Tensor, target: Tensor, route_done: Tensor, max_speed: Tensor, gain: float
 ) -> Tensor:
     """Deterministic setpoint follower without avoidance.
 
     Args:
         position: (N, 3) m, the drone's position.
-        setpoints: (N, S, 3) m, each env's route.
-        waypoint: (N,) int64, index of the setpoint being flown to; S means the route is done.
+        target: (N, 3) m, the setpoint being flown to.
+        route_done: (N,) bool, the whole route has been flown.
         max_speed: (N,) m/s per axis.
         gain: 1/s, commanded velocity per metre of error before saturation.
 
     Returns:
         (N, 3) velocity command in m/s; zero (hold) once the route is done.
     """
-    done = waypoint >= setpoints.shape[1]
-    idx = waypoint.clamp(max=setpoints.shape[1] - 1)
-    target = setpoints[torch.arange(len(idx), device=idx.device), idx]
     cmd = _saturate(gain * (target - position), max_speed)
-    return torch.where(done.unsqueeze(-1), torch.zeros_like(cmd), cmd)
+    return cmd.masked_fill(route_done.unsqueeze(-1), 0.0)
 
 
 def pure_pursuit(position: Tensor, target: Tensor, max_speed: Tensor, gain: float) -> Tensor:

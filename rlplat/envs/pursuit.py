@@ -116,7 +116,7 @@ class PursuitEnv(EnvBase):
         for name, v in (("control_period", control_period), ("time_limit", time_limit)):
             if not v > 0:
                 raise ConfigError(f"env.{name}: must be > 0, got {v}")
-        self.split_name = split
+        self.scenario_set, self.split_name = scenarios, split
         self.scenarios = scenarios.split(split).to(self.device)
         n_nn = int((self.scenarios["defender_strategy"] == STRATEGIES.index("nn")).sum())
         if n_nn:
@@ -196,23 +196,32 @@ class PursuitEnv(EnvBase):
         if k:
             idx = self.sampler.next(k)
             sc = self.scenarios[idx]
-            self.scenario_index[mask] = idx
-            self.route[mask] = sc["route"]
-            self.waypoint[mask] = 0
-            self.step_count[mask] = 0
-            self.max_speed[mask] = torch.stack(
-                [sc["attacker_max_speed"], sc["defender_max_speed"]], -1
+            # New tensors, not in-place writes: earlier outputs keep their values.
+            self.scenario_index = self.scenario_index.masked_scatter(mask, idx)
+            self.route = self.route.masked_scatter(mask, sc["route"])
+            self.waypoint = self.waypoint.masked_fill(mask, 0)
+            self.step_count = self.step_count.masked_fill(mask, 0)
+            self.max_speed = self.max_speed.masked_scatter(
+                mask.unsqueeze(-1),
+                torch.stack([sc["attacker_max_speed"], sc["defender_max_speed"]], -1),
             )
             position = self.dynamics.position.clone()
             position[mask] = torch.stack([sc["attacker_start"], sc["defender_start"]], 1)
             self.dynamics.reset(mask, position, torch.zeros_like(position), self.max_speed.clone())
-        distance, visible = self._geometry()
+        p = self.dynamics.position
+        rel = p[:, DEFENDER] - p[:, ATTACKER]
+        visible = inside_ellipsoid(rel, self.semi_axes)
         zeros = torch.zeros(n, device=self.device)
-        out = self._observe(distance, visible, captured=torch.zeros_like(visible))
-        out["reward_terms"] = {k: zeros.unsqueeze(-1) for k in self.reward_fn.weights}
-        flags = torch.zeros(n, 1, dtype=torch.bool, device=self.device)
-        out.update({"done": flags, "terminated": flags.clone(), "truncated": flags.clone()})
-        return out
+        flag = torch.zeros(n, 1, dtype=torch.bool, device=self.device)
+        return self._observe(
+            rel.norm(dim=-1),
+            visible,
+            torch.zeros_like(visible),
+            {k: zeros for k in self.reward_fn.weights},
+            done=flag,
+            terminated=flag.clone(),
+            truncated=flag.clone(),
+        )
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict["action"]
@@ -223,71 +232,65 @@ class PursuitEnv(EnvBase):
         if not torch.isfinite(action).all():
             raise ValueError("action: contains NaN or inf")
         # Command every drone: the opponent by its script, the learner by the policy.
-        commands = torch.empty_like(self.dynamics.position)
-        commands[:, 1 - self.learner] = self._scripted_command()
+        p = self.dynamics.position
+        target, route_done = self._target()
+        commands = torch.empty_like(p)
+        commands[:, 1 - self.learner] = self._scripted_command(p, target, route_done)
         commands[:, self.learner] = self.action_fn(action, self.max_speed[:, self.learner])
-        rel_before = self._relative()
+        rel_before = p[:, DEFENDER] - p[:, ATTACKER]
         self.dynamics.advance(commands, self.control_period)
-        self.step_count += 1
-        self._advance_waypoints()
+        p = self.dynamics.position
+        self.step_count = self.step_count + 1
+        # The defender moves on once it is within the acceptance radius of its setpoint.
+        reached = (p[:, DEFENDER] - target).norm(dim=-1) <= self.setpoint_acceptance
+        self.waypoint = self.waypoint + (reached & ~route_done)
 
-        distance, visible = self._geometry()
-        captured = _closest_approach(rel_before, self._relative()) <= self.capture_radius
+        rel = p[:, DEFENDER] - p[:, ATTACKER]
+        distance, visible = rel.norm(dim=-1), inside_ellipsoid(rel, self.semi_axes)
+        captured = _closest_approach(rel_before, rel) <= self.capture_radius
         total, terms = self.reward_fn(
             RewardContext(distance, visible, captured, self.reward_fn.distance_scale)
         )
-        grounded = (self.dynamics.position[..., 2] <= self.ground_altitude).any(-1)
-        terminated = captured | grounded
+        terminated = captured | (p[..., 2] <= self.ground_altitude).any(-1)
         if self.terminate_out_of_view:
             terminated |= ~visible
         truncated = (self.step_count >= self.max_steps) | (self.waypoint >= self.routes.shape[1])
         truncated &= ~terminated
-        out = self._observe(distance, visible, captured)
-        out["reward_terms"] = {k: v.unsqueeze(-1) for k, v in terms.items()}
-        out.update(
-            {
-                "reward": total.unsqueeze(-1),
-                "terminated": terminated.unsqueeze(-1),
-                "truncated": truncated.unsqueeze(-1),
-                "done": (terminated | truncated).unsqueeze(-1),
-            }
+        return self._observe(
+            distance,
+            visible,
+            captured,
+            terms,
+            reward=total.unsqueeze(-1),
+            terminated=terminated.unsqueeze(-1),
+            truncated=truncated.unsqueeze(-1),
+            done=(terminated | truncated).unsqueeze(-1),
         )
-        return out
 
     # Helpers -----------------------------------------------------------------------------
 
-    def _relative(self) -> Tensor:
-        """Defender position minus attacker position, (N, 3)."""
-        p = self.dynamics.position
-        return p[:, DEFENDER] - p[:, ATTACKER]
+    def _target(self) -> tuple[Tensor, Tensor]:
+        """The defender's current setpoint (N, 3) and whether its route is done (N,)."""
+        last = self.routes.shape[1] - 1
+        return self.routes[self.route, self.waypoint.clamp(max=last)], self.waypoint > last
 
-    def _geometry(self) -> tuple[Tensor, Tensor]:
-        """Distance (N,) and whether the defender is inside the attacker's ellipsoid (N,)."""
-        rel = self._relative()
-        return rel.norm(dim=-1), inside_ellipsoid(rel, self.semi_axes)
-
-    def _setpoints(self) -> Tensor:
-        return self.routes[self.route]
-
-    def _scripted_command(self) -> Tensor:
-        p = self.dynamics.position
+    def _scripted_command(self, p: Tensor, target: Tensor, route_done: Tensor) -> Tensor:
         opponent = 1 - self.learner
         speed = self.max_speed[:, opponent]
         if opponent == DEFENDER:
-            return follow_route(
-                p[:, DEFENDER], self._setpoints(), self.waypoint, speed, self.setpoint_gain
-            )
+            return follow_route(p[:, DEFENDER], target, route_done, speed, self.setpoint_gain)
         return pure_pursuit(p[:, ATTACKER], p[:, DEFENDER], speed, self.pursuit_gain)
 
-    def _advance_waypoints(self) -> None:
-        n_sp = self.routes.shape[1]
-        idx = self.waypoint.clamp(max=n_sp - 1)
-        target = self._setpoints()[torch.arange(len(idx), device=self.device), idx]
-        reached = (self.dynamics.position[:, DEFENDER] - target).norm(dim=-1)
-        self.waypoint += ((reached <= self.setpoint_acceptance) & (self.waypoint < n_sp)).long()
-
-    def _observe(self, distance: Tensor, visible: Tensor, captured: Tensor) -> TensorDict:
-        p, v = self.dynamics.position, self.dynamics.velocity
+    def _observe(
+        self,
+        distance: Tensor,
+        visible: Tensor,
+        captured: Tensor,
+        terms: dict[str, Tensor],
+        **extra: Tensor,
+    ) -> TensorDict:
+        """The output tensordict; every tensor in it is fresh (no alias of the env's state)."""
+        p, v = self.dynamics.position, self.dynamics.velocity  # replaced on every advance/reset
         me, other = self.learner, 1 - self.learner
         view = DroneView(p[:, me], v[:, me], p[:, other], v[:, other])
         return TensorDict(
@@ -296,9 +299,11 @@ class PursuitEnv(EnvBase):
                 "distance": distance.unsqueeze(-1),
                 "visible": visible.unsqueeze(-1),
                 "captured": captured.unsqueeze(-1),
-                "positions": p.clone(),
-                "waypoint": self.waypoint.unsqueeze(-1).clone(),
-                "scenario_index": self.scenario_index.unsqueeze(-1).clone(),
+                "positions": p,
+                "waypoint": self.waypoint.unsqueeze(-1),
+                "scenario_index": self.scenario_index.unsqueeze(-1),
+                "reward_terms": {k: t.unsqueeze(-1) for k, t in terms.items()},
+                **extra,
             },
             batch_size=self.batch_size,
             device=self.device,

@@ -1,0 +1,85 @@
+"""Env throughput: env.step through the TorchRL API with random actions.
+
+Prints, per dynamics and batch size N, env steps/s and agent-steps/s (steps/s x N), the
+time of one step, and the peak resident memory of the process. The reference row of each
+table is the bare dynamics advance (the physics alone) measured in the same run, so the
+ratio column shows what the env adds on top of the simulator.
+
+    .venv/bin/python benchmarks/env_throughput.py [--device cuda] [--sizes 1 4096]
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import time
+
+import torch
+
+from rlplat import make_env
+
+
+def peak_rss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def sync(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def time_steps(env, steps: int, device: str) -> float:
+    """Seconds per env.step, random actions, done envs reset as a collector would."""
+    td = env.reset()
+    action_spec = env.action_spec
+    for _ in range(5):  # warm-up
+        td = env.step_and_maybe_reset(td.set("action", action_spec.rand()))[1]
+    sync(device)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        td = env.step_and_maybe_reset(td.set("action", action_spec.rand()))[1]
+    sync(device)
+    return (time.perf_counter() - t0) / steps
+
+
+def time_physics(env, steps: int, device: str) -> float:
+    """Seconds per dynamics.advance of one control period (the physics alone)."""
+    cmd = torch.zeros_like(env.dynamics.position)
+    for _ in range(3):
+        env.dynamics.advance(cmd, env.control_period)
+    sync(device)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        env.dynamics.advance(cmd, env.control_period)
+    sync(device)
+    return (time.perf_counter() - t0) / steps
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--sizes", type=int, nargs="+", default=[1, 256, 4096])
+    parser.add_argument("--dynamics", nargs="+", default=["velocity", "quadrotor"])
+    parser.add_argument("--seconds", type=float, default=3.0, help="time budget per row")
+    args = parser.parse_args()
+    scenarios = make_env(num_envs=1).scenario_set
+    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, device {args.device}")
+    print(
+        f"{'dynamics':<10} {'N':>7} {'step ms':>9} {'steps/s':>9} {'agent-steps/s':>14} "
+        f"{'physics ms':>11} {'env/physics':>12} {'peak RSS MiB':>13}"
+    )
+    for dyn in args.dynamics:
+        for n in args.sizes:
+            env = make_env(f"dynamics={dyn}", num_envs=n, scenarios=scenarios, device=args.device)
+            probe = time_steps(env, 3, args.device)
+            steps = max(10, int(args.seconds / probe))
+            step_s = time_steps(env, steps, args.device)
+            phys_s = time_physics(env, max(10, steps // 2), args.device)
+            print(
+                f"{dyn:<10} {n:>7} {step_s * 1e3:>9.3f} {1 / step_s:>9.0f} {n / step_s:>14,.0f} "
+                f"{phys_s * 1e3:>11.3f} {step_s / phys_s:>12.2f} {peak_rss_mib():>13.0f}"
+            )
+
+
+if __name__ == "__main__":
+    main()
