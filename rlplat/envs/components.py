@@ -40,10 +40,31 @@ def inside_ellipsoid(rel: Tensor, semi_axes: Tensor) -> Tensor:
 # Observations ----------------------------------------------------------------------------
 
 
-class AbsoluteObservation:
+class _Observation:
+    """Base of the observations: ``dim`` features, each with a typical magnitude in ``scale``.
+
+    The env emits raw values (m, m/s); the agent's networks divide by ``scale`` first.
+
+    Args:
+        position_scale: m, typical magnitude of a position feature.
+        velocity_scale: m/s, typical magnitude of a velocity feature.
+    """
+
+    layout: tuple[str, ...] = ()  # "p" or "v" per 3-vector of the observation
+
+    def __init__(self, *, position_scale: float = 50.0, velocity_scale: float = 5.0) -> None:
+        for name, v in (("position_scale", position_scale), ("velocity_scale", velocity_scale)):
+            if not v > 0:
+                raise ConfigError(f"observation.{name}: must be > 0, got {v}")
+        per = {"p": float(position_scale), "v": float(velocity_scale)}
+        self.scale = [per[kind] for kind in self.layout for _ in range(3)]
+        self.dim = len(self.scale)
+
+
+class AbsoluteObservation(_Observation):
     """Absolute positions and velocities: [p_own, v_own, p_other, v_other], (N, 12)."""
 
-    dim = 12
+    layout = ("p", "v", "p", "v")
 
     def __call__(self, view: DroneView) -> Tensor:
         return torch.cat(
@@ -51,22 +72,22 @@ class AbsoluteObservation:
         )
 
 
-class RelativePositionObservation:
+class RelativePositionObservation(_Observation):
     """Relative position only: [p_other - p_own], (N, 3)."""
 
-    dim = 3
+    layout = ("p",)
 
     def __call__(self, view: DroneView) -> Tensor:
         return view.other_position - view.own_position
 
 
-class RelativeStateObservation:
+class RelativeStateObservation(_Observation):
     """Own velocity and the opponent's relative state (paper eq. 1 for the attacker).
 
     s = [v_own, p_other - p_own, v_other - v_own], (N, 9).
     """
 
-    dim = 9
+    layout = ("v", "p", "v")
 
     def __call__(self, view: DroneView) -> Tensor:
         return torch.cat(

@@ -73,8 +73,13 @@ def build_env(
     split: str = "train",
     num_envs: int = 1,
     device: str | torch.device = "cpu",
+    **env_overrides: Any,
 ) -> PursuitEnv:
-    """The env described by ``cfg`` (groups dynamics/observation/action/reward/drone, node env)."""
+    """The env described by ``cfg`` (groups dynamics/observation/action/reward/drone, node env).
+
+    ``env_overrides`` replace keys of the ``env`` node (e.g. ``scenario_order="sequential"`` for
+    an evaluation env).
+    """
     if num_envs < 1:
         raise ConfigError(f"num_envs: must be >= 1, got {num_envs}")
     c = OmegaConf.to_container(cfg, resolve=True)
@@ -84,7 +89,7 @@ def build_env(
     reward = Reward(**checked_kwargs(Reward, c["reward"], "reward"))
     env_kwargs = checked_kwargs(
         PursuitEnv,
-        c["env"],
+        {**c["env"], **env_overrides},
         "env",
         reserved=(
             "scenarios",

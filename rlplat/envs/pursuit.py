@@ -72,11 +72,12 @@ class PursuitEnv(EnvBase):
         ``observation`` (N, obs.dim) from the observation component, seen from the learner.
         Also ``distance`` (N, 1) m, ``visible`` and ``captured`` (N, 1) bool, ``positions``
         (N, 2, 3) m (attacker, defender), ``waypoint`` (N, 1) the defender's next setpoint,
-        ``scenario_index`` (N, 1) row of the split, ``("reward_terms", name)`` (N, 1).
+        ``scenario_index`` (N, 1) row of the split.
     Action:
         ``action`` (N, action.dim) in [-1, 1], mapped by the action component.
     Reward:
-        ``reward`` (N, 1): the reward component's weighted sum of terms.
+        ``reward`` (N, 1): the reward component's weighted sum of terms, and each weighted term
+        ``("reward_terms", name)`` (N, 1), both entries of the reward spec.
     Episode end:
         terminated on capture (closest approach during the step <= capture_radius) or when a
         drone touches the ground (z <= ground_altitude), and, if ``terminate_out_of_view``, when
@@ -168,16 +169,22 @@ class PursuitEnv(EnvBase):
             positions=real(2, 3),
             waypoint=index(),
             scenario_index=index(),
-            reward_terms=Composite(
-                {k: real(1) for k in self.reward_fn.weights}, shape=(n,), device=self.device
-            ),
             shape=(n,),
             device=self.device,
         )
         self.action_spec = Bounded(
             -1.0, 1.0, shape=(n, self.action_fn.dim), dtype=torch.float32, device=self.device
         )
-        self.reward_spec = real(1)
+        # Each weighted reward term is a reward entry of its own, so that TorchRL transforms
+        # (e.g. RewardSum) can sum it over an episode; ``reward`` is what the learner optimises.
+        self.reward_spec = Composite(
+            reward=real(1),
+            reward_terms=Composite(
+                {k: real(1) for k in self.reward_fn.weights}, shape=(n,), device=self.device
+            ),
+            shape=(n,),
+            device=self.device,
+        )
         self.done_spec = Composite(
             done=flag(), terminated=flag(), truncated=flag(), shape=(n,), device=self.device
         )
@@ -211,13 +218,11 @@ class PursuitEnv(EnvBase):
         p = self.dynamics.position
         rel = p[:, DEFENDER] - p[:, ATTACKER]
         visible = inside_ellipsoid(rel, self.semi_axes)
-        zeros = torch.zeros(n, device=self.device)
         flag = torch.zeros(n, 1, dtype=torch.bool, device=self.device)
         return self._observe(
             rel.norm(dim=-1),
             visible,
             torch.zeros_like(visible),
-            {k: zeros for k in self.reward_fn.weights},
             done=flag,
             terminated=flag.clone(),
             truncated=flag.clone(),
@@ -260,8 +265,8 @@ class PursuitEnv(EnvBase):
             distance,
             visible,
             captured,
-            terms,
             reward=total.unsqueeze(-1),
+            reward_terms={k: t.unsqueeze(-1) for k, t in terms.items()},
             terminated=terminated.unsqueeze(-1),
             truncated=truncated.unsqueeze(-1),
             done=(terminated | truncated).unsqueeze(-1),
@@ -286,7 +291,6 @@ class PursuitEnv(EnvBase):
         distance: Tensor,
         visible: Tensor,
         captured: Tensor,
-        terms: dict[str, Tensor],
         **extra: Tensor,
     ) -> TensorDict:
         """The output tensordict; every tensor in it is fresh (no alias of the env's state)."""
@@ -302,7 +306,6 @@ class PursuitEnv(EnvBase):
                 "positions": p,
                 "waypoint": self.waypoint.unsqueeze(-1),
                 "scenario_index": self.scenario_index.unsqueeze(-1),
-                "reward_terms": {k: t.unsqueeze(-1) for k, t in terms.items()},
                 **extra,
             },
             batch_size=self.batch_size,

@@ -1,0 +1,74 @@
+"""Checkpoints: what a run saves, how a resume checks it, and how a policy is loaded back."""
+
+from __future__ import annotations
+
+import io
+import random
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from rlplat.agents.sac import NetSpec, make_actor
+from rlplat.errors import ConfigError
+from rlplat.io import atomic_write_bytes
+
+FORMAT_VERSION = 1
+
+
+def rng_state() -> dict[str, Any]:
+    return {
+        "torch": torch.get_rng_state(),
+        "numpy": np.random.get_state(),
+        "python": random.getstate(),
+    }
+
+
+def set_rng_state(state: dict[str, Any]) -> None:
+    torch.set_rng_state(state["torch"])
+    np.random.set_state(state["numpy"])
+    random.setstate(state["python"])
+
+
+def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
+    """Write ``payload`` (plus the format version) atomically to ``path``."""
+    buffer = io.BytesIO()
+    torch.save({"format_version": FORMAT_VERSION, **payload}, buffer)
+    atomic_write_bytes(path, buffer.getvalue())
+
+
+def load_checkpoint(path: str | Path) -> dict[str, Any]:
+    """Read a checkpoint written by :func:`save_checkpoint`; a clear error if it is not one."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"checkpoint: no file at {path}")
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    if not isinstance(state, dict) or state.get("format_version") != FORMAT_VERSION:
+        raise ConfigError(f"checkpoint: {path} is not an rlplat checkpoint (format 1)")
+    return state
+
+
+def check_compatible(state: dict[str, Any], net: NetSpec, interface: dict[str, str], path) -> None:
+    """Refuse to continue from a checkpoint whose networks or drone interface differ."""
+    saved_net, saved_iface = state["net"], state["interface"]
+    for key, value in net.as_dict().items():
+        if saved_net[key] != value:
+            raise ConfigError(
+                f"resume: {path} has {key}={saved_net[key]}, this run has {key}={value}"
+            )
+    for key, value in interface.items():
+        if saved_iface.get(key) != value:
+            raise ConfigError(
+                f"resume: {path} was trained with {key}={saved_iface.get(key)}, "
+                f"this run has {key}={value}"
+            )
+
+
+def load_policy(path: str | Path, action_spec, device: torch.device | str = "cpu"):
+    """The deterministic-capable actor saved in a checkpoint (``best.pt`` or ``last.pt``)."""
+    state = load_checkpoint(path)
+    net = NetSpec(**{k: tuple(v) if isinstance(v, list) else v for k, v in state["net"].items()})
+    actor = make_actor(net, action_spec, device)
+    actor.load_state_dict(state["actor"])
+    return actor

@@ -1,0 +1,100 @@
+"""Metrics of a run: TorchRL loggers (CSV always, plus the configured one), learning curve."""
+
+from __future__ import annotations
+
+import io
+import logging
+import os
+from collections import defaultdict
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger, WandbLogger
+
+from rlplat.errors import ConfigError
+from rlplat.io import atomic_write_bytes
+
+log = logging.getLogger(__name__)
+
+BACKENDS = ("csv", "wandb", "tensorboard")
+
+
+def make_logger(
+    node: Mapping[str, Any], run_dir: Path, exp_name: str, config: dict
+) -> Logger | None:
+    """The configured TorchRL logger writing inside ``run_dir``; None for ``csv`` (always on)."""
+    backend = node["backend"]
+    if backend == "csv":
+        return None
+    if backend == "tensorboard":
+        return TensorboardLogger(exp_name="tensorboard", log_dir=str(run_dir))
+    if backend == "wandb":
+        mode = os.environ.get("WANDB_MODE", node.get("mode", "offline"))
+        logger = WandbLogger(
+            exp_name=exp_name,
+            offline=mode == "offline",  # other modes are read by wandb from WANDB_MODE
+            save_dir=str(run_dir),
+            project=node.get("project", "rlplat"),
+            log_env_packages=False,
+        )
+        logger.log_hparams(config)
+        return logger
+    raise ConfigError(f"logger.backend: unknown '{backend}'; valid: {', '.join(BACKENDS)}")
+
+
+class Metrics:
+    """Sends scalars to every logger and keeps their history for the learning curve.
+
+    CSV files (one per metric, ``<run>/metrics/scalars/<namespace>/<name>.csv``) are always
+    written; ``extra`` is the configured logger when it is not CSV.
+    """
+
+    def __init__(self, run_dir: Path, extra: Logger | None = None) -> None:
+        self.loggers: list[Logger] = [CSVLogger(exp_name="metrics", log_dir=str(run_dir))]
+        if extra is not None:
+            self.loggers.append(extra)
+        self.history: dict[str, list[tuple[int, float]]] = defaultdict(list)
+
+    def log(self, values: Mapping[str, float], step: int) -> None:
+        for name, value in values.items():
+            value = float(value)
+            self.history[name].append((step, value))
+            for logger in self.loggers:
+                logger.log_scalar(name, value, step=step)
+
+    def close(self) -> None:
+        for logger in self.loggers:
+            experiment = getattr(logger, "experiment", None)
+            finish = getattr(experiment, "finish", None) or getattr(experiment, "close", None)
+            if callable(finish):
+                finish()
+
+
+def plot_learning_curve(history: Mapping[str, list[tuple[int, float]]], path: Path) -> None:
+    """Validation capture rate and mean return, and training return, against frames (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
+    for name, axis in (("eval/capture_rate", top), ("eval/mean_return", bottom)):
+        if history.get(name):
+            x, y = zip(*history[name], strict=True)
+            axis.plot(x, y, marker="o", label=f"validation {name.split('/')[1]}")
+    if history.get("train/episode_return"):
+        x, y = zip(*history["train/episode_return"], strict=True)
+        bottom.plot(x, y, alpha=0.4, label="training episode return")
+    top.set_ylabel("capture rate")
+    top.set_ylim(-0.02, 1.02)
+    bottom.set_ylabel("return")
+    bottom.set_xlabel("frames")
+    for axis in (top, bottom):
+        axis.grid(alpha=0.3)
+        axis.legend(loc="lower right")
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=100)
+    plt.close(fig)
+    atomic_write_bytes(path, buffer.getvalue())

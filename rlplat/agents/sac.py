@@ -1,0 +1,212 @@
+"""Soft Actor-Critic from TorchRL parts: actor, twin critics, loss and optimisers."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import NormalParamExtractor, TensorDictModule
+from torch import nn
+from torchrl.data import TensorSpec
+from torchrl.envs.utils import ExplorationType
+from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
+from torchrl.objectives import SACLoss, SoftUpdate
+
+from rlplat.errors import ConfigError
+
+ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh, "elu": nn.ELU}
+
+
+@dataclass(frozen=True)
+class NetSpec:
+    """What fixes the shapes of a policy: a checkpoint only loads into the same ``NetSpec``."""
+
+    obs_dim: int
+    action_dim: int
+    actor_cells: tuple[int, ...]
+    critic_cells: tuple[int, ...]
+    activation: str
+    obs_scale: tuple[float, ...]  # the networks see observation / obs_scale
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "obs_dim": self.obs_dim,
+            "action_dim": self.action_dim,
+            "obs_scale": list(self.obs_scale),
+            "actor_cells": list(self.actor_cells),
+            "critic_cells": list(self.critic_cells),
+            "activation": self.activation,
+        }
+
+
+class Scaled(nn.Module):
+    """``body(cat(observation / scale, *rest))``: fixed input scaling in front of an MLP."""
+
+    def __init__(self, body: nn.Module, scale: tuple[float, ...], device=None) -> None:
+        super().__init__()
+        self.body = body
+        self.register_buffer("inv_scale", 1.0 / torch.tensor(scale, device=device))
+
+    def forward(self, observation: torch.Tensor, *rest: torch.Tensor) -> torch.Tensor:
+        return self.body(torch.cat([observation * self.inv_scale, *rest], -1))
+
+
+def make_actor(net: NetSpec, action_spec: TensorSpec, device: torch.device | str = "cpu"):
+    """Gaussian policy squashed by tanh into the action bounds (TorchRL ``TanhNormal``).
+
+    Reads ``observation``, writes ``loc``, ``scale`` and ``action``. Under
+    ``ExplorationType.DETERMINISTIC`` the action is the distribution's deterministic sample
+    (tanh of the mean).
+    """
+    body = MLP(
+        in_features=net.obs_dim,
+        out_features=2 * net.action_dim,
+        num_cells=list(net.actor_cells),
+        activation_class=ACTIVATIONS[net.activation],
+        device=device,
+    )
+    module = TensorDictModule(
+        nn.Sequential(
+            Scaled(body, net.obs_scale, device),
+            NormalParamExtractor(scale_mapping="biased_softplus_1.0"),
+        ),
+        in_keys=["observation"],
+        out_keys=["loc", "scale"],
+    )
+    return ProbabilisticActor(
+        module,
+        in_keys=["loc", "scale"],
+        spec=action_spec,
+        distribution_class=TanhNormal,
+        distribution_kwargs={"low": action_spec.space.low, "high": action_spec.space.high},
+        default_interaction_type=ExplorationType.RANDOM,
+        return_log_prob=False,
+    )
+
+
+def make_critic(net: NetSpec, device: torch.device | str = "cpu") -> ValueOperator:
+    """Q(s, a): reads ``observation`` and ``action``, writes ``state_action_value``."""
+    body = MLP(
+        in_features=net.obs_dim + net.action_dim,
+        out_features=1,
+        num_cells=list(net.critic_cells),
+        activation_class=ACTIVATIONS[net.activation],
+        device=device,
+    )
+    return ValueOperator(Scaled(body, net.obs_scale, device), in_keys=["observation", "action"])
+
+
+class SACAgent:
+    """SAC with automatic entropy tuning: TorchRL ``SACLoss`` (two Q nets), ``SoftUpdate``.
+
+    Args:
+        net: network shapes.
+        action_spec: the env's action spec (bounds of the tanh squashing).
+        gamma: discount.
+        tau: soft target update rate (target <- (1 - tau) target + tau online).
+        actor_lr, critic_lr, alpha_lr: Adam learning rates.
+        alpha_init: initial entropy coefficient.
+        target_entropy: ``"auto"`` (minus the action dimension) or a number.
+        loss_function: critic regression loss, ``l2`` or ``smooth_l1``.
+        compile: wrap the update in ``torch.compile``.
+        device: where the networks live.
+    """
+
+    def __init__(
+        self,
+        net: NetSpec,
+        action_spec: TensorSpec,
+        *,
+        gamma: float,
+        tau: float,
+        actor_lr: float,
+        critic_lr: float,
+        alpha_lr: float,
+        alpha_init: float = 1.0,
+        target_entropy: str | float = "auto",
+        loss_function: str = "l2",
+        compile: bool = False,
+        device: torch.device | str = "cpu",
+    ) -> None:
+        self.net = net
+        self.actor = make_actor(net, action_spec, device)
+        critic = make_critic(net, device)
+        self.loss = SACLoss(
+            actor_network=self.actor,
+            qvalue_network=critic,
+            num_qvalue_nets=2,
+            loss_function=loss_function,
+            alpha_init=alpha_init,
+            target_entropy=target_entropy,
+            action_spec=action_spec,
+            delay_actor=False,
+            delay_qvalue=True,
+        )
+        self.loss.make_value_estimator(gamma=gamma)
+        self.target_updater = SoftUpdate(self.loss, tau=tau)
+        self.optimizers = {
+            "actor": torch.optim.Adam(self.loss.actor_network_params.values(True, True), actor_lr),
+            "critic": torch.optim.Adam(
+                self.loss.qvalue_network_params.values(True, True), critic_lr
+            ),
+            "alpha": torch.optim.Adam([self.loss.log_alpha], alpha_lr),
+        }
+        self._update = torch.compile(self._update_eager) if compile else self._update_eager
+
+    def update(self, batch: TensorDictBase) -> dict[str, float]:
+        """One gradient step on every loss, then the soft target update; returns the losses."""
+        out = self._update(batch)
+        self.target_updater.step()
+        return out
+
+    def _update_eager(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
+        losses = self.loss(batch)
+        total = losses["loss_actor"] + losses["loss_qvalue"] + losses["loss_alpha"]
+        for opt in self.optimizers.values():
+            opt.zero_grad(set_to_none=True)
+        total.backward()
+        for opt in self.optimizers.values():
+            opt.step()
+        return {
+            "loss_actor": losses["loss_actor"].detach(),
+            "loss_qvalue": losses["loss_qvalue"].detach(),
+            "loss_alpha": losses["loss_alpha"].detach(),
+            "alpha": losses["alpha"].detach(),
+            "entropy": losses["entropy"].detach(),
+        }
+
+    # Checkpoints -------------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "loss": self.loss.state_dict(),
+            "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
+        }
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        self.loss.load_state_dict(state["loss"])
+        for k, o in self.optimizers.items():
+            o.load_state_dict(state["optimizers"][k])
+
+
+def net_spec(obs_scale: Sequence[float], action_dim: int, algo: Mapping[str, Any]) -> NetSpec:
+    """The ``NetSpec`` of ``algo`` (the ``algo`` config node) for an observation whose features
+    have the typical magnitudes ``obs_scale``, checked."""
+    act = algo["activation"]
+    if act not in ACTIVATIONS:
+        raise ConfigError(f"algo.activation: unknown '{act}'; valid: {', '.join(ACTIVATIONS)}")
+    for key in ("actor_cells", "critic_cells"):
+        cells = algo[key]
+        if not isinstance(cells, Sequence) or not cells or any(int(c) < 1 for c in cells):
+            raise ConfigError(f"algo.{key}: a non-empty list of positive widths, got {cells}")
+    return NetSpec(
+        obs_dim=len(obs_scale),
+        obs_scale=tuple(float(x) for x in obs_scale),
+        action_dim=int(action_dim),
+        actor_cells=tuple(int(c) for c in algo["actor_cells"]),
+        critic_cells=tuple(int(c) for c in algo["critic_cells"]),
+        activation=act,
+    )

@@ -1,0 +1,343 @@
+"""The training run: SAC over the batched pursuit env, validation, checkpoints, summary.
+
+``train(cfg)`` is what ``train.py`` calls; tests and notebooks call it the same way.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import random
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.envs import RewardSum, TransformedEnv
+from torchrl.envs.utils import ExplorationType
+from tqdm import tqdm
+
+from rlplat.agents.checkpoint import (
+    check_compatible,
+    load_checkpoint,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+)
+from rlplat.agents.metrics import Metrics, make_logger, plot_learning_curve
+from rlplat.agents.sac import SACAgent, net_spec
+from rlplat.envs.factory import build_env, resolve_scenarios
+from rlplat.errors import ConfigError
+from rlplat.eval.episodes import EpisodeResults, evaluate
+from rlplat.io import atomic_write_text
+
+log = logging.getLogger(__name__)
+
+#: What the replay buffer keeps of each transition.
+TRANSITION_KEYS = (
+    "observation",
+    "action",
+    ("next", "observation"),
+    ("next", "reward"),
+    ("next", "done"),
+    ("next", "terminated"),
+)
+
+
+@dataclass(frozen=True)
+class Budget:
+    """When a run stops: whichever of frames or wall-clock minutes comes first."""
+
+    frames: int
+    minutes: float | None
+
+    @classmethod
+    def from_cfg(cls, node) -> Budget:
+        frames, minutes = node.total_frames, node.max_minutes
+        if not isinstance(frames, int) or frames <= 0:
+            raise ConfigError(f"train.total_frames: must be a positive integer, got {frames}")
+        if minutes is not None and not minutes > 0:
+            raise ConfigError(f"train.max_minutes: must be > 0 or null, got {minutes}")
+        return cls(frames, None if minutes is None else float(minutes))
+
+
+def _positive(node, where: str, *keys: str) -> None:
+    for key in keys:
+        value = node[key]
+        if not value > 0:
+            raise ConfigError(f"{where}.{key}: must be > 0, got {value}")
+
+
+def _run_dir(run_dir: str | Path | None) -> Path:
+    if run_dir is not None:
+        return Path(run_dir)
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        raise ConfigError("run_dir: not under @hydra.main; pass train(cfg, run_dir=...)")
+    return Path(HydraConfig.get().runtime.output_dir)
+
+
+def _interface(cfg: DictConfig) -> dict[str, str]:
+    """The drone interface a checkpoint is bound to."""
+    return {
+        "drone.learner": cfg.drone.learner,
+        "observation.name": cfg.observation.name,
+        "action.name": cfg.action.name,
+    }
+
+
+def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
+    """Train the configured learner with SAC; returns the run's summary (also summary.json).
+
+    The run directory receives ``config.yaml`` (resolved), ``checkpoints/{best,last}.pt``,
+    ``metrics/`` (CSV), ``learning_curve.png`` and ``summary.json``.
+    """
+    # Everything is checked before any work starts.
+    run_dir = _run_dir(run_dir)
+    budget = Budget.from_cfg(cfg.train)
+    algo = cfg.algo
+    _positive(algo, "algo", "num_envs", "frames_per_batch", "batch_size", "buffer_size")
+    _positive(cfg.train, "train", "eval_every_frames")
+    if algo.frames_per_batch % algo.num_envs:
+        raise ConfigError(
+            f"algo.frames_per_batch: {algo.frames_per_batch} is not a multiple of "
+            f"algo.num_envs={algo.num_envs}"
+        )
+    if not algo.utd_ratio > 0:
+        raise ConfigError(f"algo.utd_ratio: must be > 0, got {algo.utd_ratio}")
+    device = torch.device(cfg.train.device)
+    ckpt_dir = run_dir / "checkpoints"
+    resume_state = None
+    if cfg.resume:
+        resume_state = load_checkpoint(ckpt_dir / "last.pt")
+
+    scenarios = resolve_scenarios(cfg, cfg.scenarios_dir)
+    env = build_env(cfg, scenarios=scenarios, split="train", num_envs=algo.num_envs, device=device)
+    terms = list(env.reward_fn.weights)
+    train_env = TransformedEnv(
+        env,
+        RewardSum(
+            in_keys=["reward", *[("reward_terms", k) for k in terms]],
+            out_keys=["episode_reward", *[("episode_terms", k) for k in terms]],
+        ),
+    )
+    n_val = len(scenarios.split("val"))
+    val_env = build_env(
+        cfg, scenarios=scenarios, split="val", num_envs=n_val, device=device,
+        scenario_order="sequential",
+    )  # fmt: skip
+    net = net_spec(env.obs_fn.scale, env.action_spec.shape[-1], algo)
+    if resume_state is not None:
+        check_compatible(resume_state, net, _interface(cfg), ckpt_dir / "last.pt")
+
+    torch.manual_seed(cfg.seed)
+    np.random.seed(cfg.seed)
+    random.seed(cfg.seed)
+    env.set_seed(cfg.seed)
+    agent = SACAgent(
+        net,
+        env.action_spec[0] if env.action_spec.ndim > 1 else env.action_spec,
+        gamma=algo.gamma,
+        tau=algo.tau,
+        actor_lr=algo.actor_lr,
+        critic_lr=algo.critic_lr,
+        alpha_lr=algo.alpha_lr,
+        alpha_init=algo.alpha_init,
+        target_entropy=algo.target_entropy,
+        loss_function=algo.loss_function,
+        compile=algo.compile,
+        device=device,
+    )
+    counters = {"frames": 0, "updates": 0, "evals": 0, "wall_time_s": 0.0}
+    best = {"capture_rate": -1.0, "mean_return": -float("inf"), "frames": 0}
+    if resume_state is not None:
+        agent.load_state_dict(resume_state["agent"])
+        counters.update(resume_state["counters"])
+        best.update(resume_state["best"])
+        set_rng_state(resume_state["rng"])
+        env.sampler.generator.set_state(resume_state["scenario_rng"])
+        log.info("resuming %s at %d frames", run_dir, counters["frames"])
+
+    run_dir.mkdir(parents=True, exist_ok=True)
+    resolved = OmegaConf.to_container(cfg, resolve=True)
+    atomic_write_text(run_dir / "config.yaml", OmegaConf.to_yaml(resolved))
+    metrics = Metrics(run_dir, make_logger(cfg.logger, run_dir, cfg.drone.name, resolved))
+
+    buffer = TensorDictReplayBuffer(
+        storage=LazyTensorStorage(algo.buffer_size, device=device),
+        batch_size=algo.batch_size,
+    )
+    # The buffer is not checkpointed: a resumed run refills it with its current policy.
+    learning_starts = algo.init_random_frames
+    collector = Collector(
+        train_env,
+        agent.actor,
+        frames_per_batch=algo.frames_per_batch,
+        total_frames=-1,
+        init_random_frames=0 if resume_state is not None else algo.init_random_frames,
+        exploration_type=ExplorationType.RANDOM,
+        device=device,
+    )
+
+    def payload() -> dict[str, Any]:
+        return {
+            "net": net.as_dict(),
+            "interface": _interface(cfg),
+            "actor": agent.actor.state_dict(),
+            "agent": agent.state_dict(),
+            "counters": dict(counters),
+            "best": dict(best),
+            "rng": rng_state(),
+            "scenario_rng": env.sampler.generator.get_state(),
+            "scenario_digest": scenarios.digest,
+            "config": resolved,
+        }
+
+    def validate() -> EpisodeResults:
+        t0 = time.perf_counter()
+        results = evaluate(val_env, agent.actor)
+        counters["evals"] += 1
+        values = {f"eval/{k}": v for k, v in results.summary().items()}
+        values["time/eval_s"] = time.perf_counter() - t0
+        metrics.log(values, counters["frames"])
+        better = (results.capture_rate, results.mean_return) > (
+            best["capture_rate"],
+            best["mean_return"],
+        )
+        if better:
+            best.update(
+                capture_rate=results.capture_rate,
+                mean_return=results.mean_return,
+                frames=counters["frames"],
+            )
+            save_checkpoint(ckpt_dir / "best.pt", payload())
+        log.info(
+            "frames %d: validation capture rate %.3f, mean return %.2f%s",
+            counters["frames"],
+            results.capture_rate,
+            results.mean_return,
+            " (best)" if better else "",
+        )
+        return results
+
+    start = time.perf_counter() - counters["wall_time_s"]
+    deadline = None if budget.minutes is None else start + 60.0 * budget.minutes
+    next_eval = (
+        counters["frames"] // cfg.train.eval_every_frames + 1
+    ) * cfg.train.eval_every_frames
+    update_credit = 0.0
+    bar = tqdm(
+        total=budget.frames,
+        initial=counters["frames"],
+        unit="frame",
+        unit_scale=True,
+        disable=not cfg.train.progress,
+        dynamic_ncols=True,
+    )
+    last_val = best["capture_rate"] if best["capture_rate"] >= 0 else float("nan")
+    frames_at_start, session_start = counters["frames"], time.perf_counter()
+    try:
+        for batch in collector:
+            t_collected = time.perf_counter()
+            n = batch.numel()
+            counters["frames"] += n
+            buffer.extend(batch.select(*TRANSITION_KEYS).reshape(-1))
+            values = _episode_metrics(batch, terms)
+
+            if len(buffer) >= max(learning_starts, algo.batch_size):
+                update_credit += n * algo.utd_ratio
+                losses = []
+                while update_credit >= 1.0:
+                    losses.append(agent.update(buffer.sample()))
+                    update_credit -= 1.0
+                    counters["updates"] += 1
+                if losses:
+                    values.update(
+                        {
+                            f"train/{k}": torch.stack([x[k] for x in losses]).mean().item()
+                            for k in losses[0]
+                        }
+                    )
+            now = time.perf_counter()
+            counters["wall_time_s"] = now - start
+            values["time/update_s"] = now - t_collected
+            values["time/frames_per_s"] = (counters["frames"] - frames_at_start) / (
+                now - session_start
+            )
+            values["train/updates"] = counters["updates"]
+            metrics.log(values, counters["frames"])
+
+            out_of_budget = counters["frames"] >= budget.frames or (
+                deadline is not None and now >= deadline
+            )
+            if counters["frames"] >= next_eval or out_of_budget:
+                last_val = validate().capture_rate
+                next_eval += cfg.train.eval_every_frames
+                counters["wall_time_s"] = time.perf_counter() - start
+                save_checkpoint(ckpt_dir / "last.pt", payload())
+            bar.update(n)
+            bar.set_postfix(val_capture=f"{last_val:.2f}", refresh=False)
+            if out_of_budget:
+                break
+    finally:
+        bar.close()
+        collector.shutdown()
+
+    # Test the best policy on the test split.
+    best_state = load_checkpoint(ckpt_dir / "best.pt")
+    agent.actor.load_state_dict(best_state["actor"])
+    n_test = len(scenarios.split("test"))
+    test_env = build_env(
+        cfg, scenarios=scenarios, split="test", num_envs=n_test, device=device,
+        scenario_order="sequential",
+    )  # fmt: skip
+    test = evaluate(test_env, agent.actor)
+    metrics.log({f"test/{k}": v for k, v in test.summary().items()}, counters["frames"])
+    summary = {
+        "frames": counters["frames"],
+        "updates": counters["updates"],
+        "wall_time_s": round(counters["wall_time_s"], 3),
+        "best_val_capture_rate": best["capture_rate"],
+        "best_val_mean_return": best["mean_return"],
+        "best_frames": best["frames"],
+        "test_capture_rate": test.capture_rate,
+        "test_mean_return": test.mean_return,
+        "test_scenarios": n_test,
+        "scenario_digest": scenarios.digest,
+        "scenario_dir": str(scenarios.path),
+        "drone": cfg.drone.name,
+        "seed": cfg.seed,
+        "run_dir": str(run_dir),
+    }
+    atomic_write_text(run_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
+    plot_learning_curve(metrics.history, run_dir / "learning_curve.png")
+    metrics.close()
+    log.info(
+        "test capture rate %.3f (%d scenarios), mean return %.2f; run directory %s",
+        test.capture_rate,
+        n_test,
+        test.mean_return,
+        run_dir,
+    )
+    return summary
+
+
+def _episode_metrics(batch, terms: list[str]) -> dict[str, float]:
+    """Means over the training episodes that ended in this batch."""
+    done = batch["next", "done"].squeeze(-1)
+    if not done.any():
+        return {}
+    nxt = batch["next"]
+    values = {
+        "train/episode_return": nxt["episode_reward"][done].mean().item(),
+        "train/capture_rate": nxt["captured"][done].float().mean().item(),
+        "train/episodes": int(done.sum()),
+    }
+    values.update({f"reward/{k}": nxt["episode_terms", k][done].mean().item() for k in terms})
+    return values

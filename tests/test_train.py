@@ -1,0 +1,199 @@
+import csv
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from rlplat.agents import train
+from rlplat.agents.checkpoint import load_checkpoint, load_policy
+from rlplat.config import compose_config
+from rlplat.errors import ConfigError
+from tests.test_env import scenarios  # noqa: F401  (module-scoped fixture)
+
+ROOT = Path(__file__).resolve().parent.parent
+
+# A run of a few seconds: small batches, short episodes, validation twice.
+TINY = (
+    "algo.num_envs=4",
+    "algo.frames_per_batch=64",
+    "algo.init_random_frames=64",
+    "algo.batch_size=32",
+    "algo.utd_ratio=0.1",
+    "algo.actor_cells=[32,32]",
+    "algo.critic_cells=[32,32]",
+    "train.total_frames=256",
+    "train.eval_every_frames=128",
+    "train.progress=false",
+    "env.time_limit=3",
+)
+
+
+def tiny_run(scenarios, run_dir, *overrides):  # noqa: F811
+    cfg = compose_config("train", [*TINY, f"scenarios_dir={scenarios.path}", *overrides])
+    return train(cfg, run_dir=run_dir)
+
+
+def cli(*args, cwd=ROOT, env=None, timeout=300):
+    return subprocess.run(
+        [sys.executable, str(ROOT / "train.py"), *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        env={**os.environ, **(env or {})},
+        timeout=timeout,
+    )
+
+
+def test_cli_run_writes_the_run_directory(scenarios, tmp_path):  # noqa: F811
+    run = tmp_path / "run"
+    res = cli(*TINY, f"scenarios_dir={scenarios.path}", f"hydra.run.dir={run}")
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert res.stdout.strip().splitlines()[-1].startswith("test capture rate ")
+    assert str(run) in res.stdout
+    summary = json.loads((run / "summary.json").read_text())
+    for key in (
+        "frames",
+        "wall_time_s",
+        "best_val_capture_rate",
+        "test_capture_rate",
+        "test_mean_return",
+    ):
+        assert key in summary
+    assert summary["frames"] >= 256 and summary["scenario_digest"] == scenarios.digest
+    assert (run / "checkpoints" / "best.pt").is_file()
+    assert (run / "checkpoints" / "last.pt").is_file()
+    assert (run / "learning_curve.png").read_bytes()[:4] == b"\x89PNG"
+    assert "observation" in (run / "config.yaml").read_text()
+    scalars = run / "metrics" / "scalars"
+    with open(scalars / "eval" / "capture_rate.csv") as f:
+        rows = list(csv.reader(f))
+    assert [int(r[0]) for r in rows] == [128, 256]  # validated every 128 frames
+    for name in ("train/loss_qvalue", "time/frames_per_s", "train/updates"):
+        assert (scalars / f"{name}.csv").is_file(), name
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        ("drone=attacker_v1",),
+        ("drone=attacker_v2", "reward=sparse"),
+        ("drone=attacker_v3", "dynamics=quadrotor", "env.time_limit=1"),
+        ("algo=sac_paper", "algo.frames_per_batch=4", "algo.num_envs=4", "algo.utd_ratio=0.05"),
+    ],
+    ids=["v1", "v2-sparse", "v3-quadrotor", "sac_paper"],
+)
+def test_component_swaps_train(scenarios, tmp_path, overrides):  # noqa: F811
+    summary = tiny_run(scenarios, tmp_path, *overrides)
+    assert summary["updates"] > 0
+    assert 0.0 <= summary["test_capture_rate"] <= 1.0
+    state = load_checkpoint(tmp_path / "checkpoints" / "last.pt")
+    drone = compose_config("train", list(overrides)).drone.name
+    assert state["config"]["drone"]["name"] == drone
+
+
+def test_sac_paper_matches_the_paper(scenarios):  # noqa: F811
+    algo = compose_config("train", ["algo=sac_paper"]).algo
+    assert list(algo.actor_cells) == list(algo.critic_cells) == [64, 64]
+    assert algo.activation == "relu" and algo.batch_size == 128 and algo.gamma == 0.99
+    assert algo.actor_lr == algo.critic_lr == 1e-3 and algo.target_entropy == "auto"
+    assert algo.num_envs == 1 and algo.utd_ratio == 1.0
+
+
+@pytest.mark.parametrize("logger", ["wandb", "tensorboard"])
+def test_loggers_write_inside_the_run_directory(scenarios, tmp_path, logger, monkeypatch):  # noqa: F811
+    monkeypatch.delenv("WANDB_MODE", raising=False)
+    tiny_run(scenarios, tmp_path, f"logger={logger}")
+    assert (tmp_path / "metrics" / "scalars" / "eval" / "capture_rate.csv").is_file()
+    if logger == "wandb":
+        runs = list((tmp_path / "wandb").glob("offline-run-*"))
+        assert runs, "wandb runs offline by default"
+    else:
+        assert list((tmp_path / "tensorboard").rglob("events.out.tfevents.*"))
+
+
+def test_resume_continues_counters_and_refuses_another_interface(scenarios, tmp_path):  # noqa: F811
+    first = tiny_run(scenarios, tmp_path)
+    saved = load_checkpoint(tmp_path / "checkpoints" / "last.pt")
+    resumed = tiny_run(scenarios, tmp_path, "resume=true", "train.total_frames=512")
+    assert resumed["frames"] == first["frames"] + 256
+    assert resumed["updates"] > first["updates"]
+    assert resumed["wall_time_s"] > first["wall_time_s"]
+    after = load_checkpoint(tmp_path / "checkpoints" / "last.pt")
+    assert after["counters"]["frames"] > saved["counters"]["frames"]
+    with pytest.raises(
+        ConfigError, match=r"resume: .*last.pt has obs_dim=9, this run has obs_dim=12"
+    ):
+        tiny_run(scenarios, tmp_path, "resume=true", "drone=attacker_v1")
+    with pytest.raises(ConfigError, match=r"checkpoint: no file at .*last.pt"):
+        tiny_run(scenarios, tmp_path / "elsewhere", "resume=true")
+
+
+def test_best_checkpoint_loads_as_a_deterministic_policy(scenarios, tmp_path):  # noqa: F811
+    from rlplat import make_env
+    from rlplat.eval.episodes import evaluate
+
+    summary = tiny_run(scenarios, tmp_path)
+    env = make_env("env.time_limit=3", scenarios=scenarios, split="test", num_envs=16)
+    policy = load_policy(tmp_path / "checkpoints" / "best.pt", env.action_spec[0])
+    a, b = evaluate(env, policy), evaluate(env, policy)
+    assert a.capture_rate == b.capture_rate == pytest.approx(summary["test_capture_rate"])
+    assert torch.equal(a.returns, b.returns)
+
+
+def test_same_seed_same_training(scenarios, tmp_path):  # noqa: F811
+    a = tiny_run(scenarios, tmp_path / "a", "seed=3")
+    b = tiny_run(scenarios, tmp_path / "b", "seed=3")
+    sa = load_checkpoint(tmp_path / "a" / "checkpoints" / "last.pt")["actor"]
+    sb = load_checkpoint(tmp_path / "b" / "checkpoints" / "last.pt")["actor"]
+    assert all(torch.equal(sa[k], sb[k]) for k in sa)
+    assert a["test_mean_return"] == b["test_mean_return"]
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (("train.total_frames=0",), "error: train.total_frames: must be a positive integer, got 0"),
+        (("train.max_minutes=-1",), "error: train.max_minutes: must be > 0 or null, got -1"),
+        (("algo.frames_per_batch=30",), "error: algo.frames_per_batch: 30 is not a multiple"),
+        (("logger.backend=mlflow",), "error: logger.backend: unknown 'mlflow'; valid: csv"),
+    ],
+)
+def test_cli_bad_input_is_one_line_before_any_work(scenarios, tmp_path, args, message):  # noqa: F811
+    run = tmp_path / "run"
+    res = cli(*TINY, f"scenarios_dir={scenarios.path}", f"hydra.run.dir={run}", *args)
+    assert res.returncode == 2
+    assert res.stderr.strip().splitlines()[-1].startswith(message)
+    assert not (run / "checkpoints").exists()
+
+
+def test_cli_unknown_override_is_refused(tmp_path):
+    res = cli("algo.learning_rate=1", f"hydra.run.dir={tmp_path}")
+    assert res.returncode != 0 and "learning_rate" in res.stderr
+    res = cli("algo=ppo", f"hydra.run.dir={tmp_path}")
+    assert res.returncode != 0 and "sac_paper" in res.stderr  # lists the available options
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("launcher", ["basic", "joblib"])
+def test_multirun_sweeps_seeds(scenarios, tmp_path, launcher):  # noqa: F811
+    res = cli(
+        "-m",
+        *TINY,
+        f"scenarios_dir={scenarios.path}",
+        "seed=0,1",
+        f"hydra/launcher={launcher}",
+        f"hydra.sweep.dir={tmp_path}",
+    )
+    assert res.returncode == 0, res.stderr[-2000:]
+    summaries = [json.loads((tmp_path / str(i) / "summary.json").read_text()) for i in (0, 1)]
+    assert [s["seed"] for s in summaries] == [0, 1]
+
+
+def test_cluster_launcher_config_composes():
+    res = cli("hydra/launcher=cluster", "--cfg", "hydra", "--package", "hydra.launcher")
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "submitit_launcher.SlurmLauncher" in res.stdout and "timeout_min: 60" in res.stdout

@@ -1,0 +1,25 @@
+"""Train a drone controller: ``python train.py drone=attacker_v3 reward=shaped``.
+
+Every config group can be swapped from the command line (see conf/train.yaml); ``-m`` sweeps.
+"""
+
+import hydra
+from omegaconf import DictConfig
+
+from rlplat.cli import exit_on_error
+
+
+@hydra.main(config_path="conf", config_name="train", version_base="1.3")
+@exit_on_error
+def main(cfg: DictConfig) -> None:
+    from rlplat.agents import train
+
+    summary = train(cfg)
+    print(
+        f"test capture rate {summary['test_capture_rate']:.3f} "
+        f"({summary['test_scenarios']} scenarios), run directory {summary['run_dir']}"
+    )
+
+
+if __name__ == "__main__":
+    main()
