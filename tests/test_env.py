@@ -73,7 +73,7 @@ def test_drone_bundles_pick_their_observation_and_cli_wins(scenarios, drone, dim
     assert env.observation_spec["observation"].shape == (2, dim)
     assert set(env.reward_fn.weights) == set(REWARD_TERMS)  # shaped by default
     env = make_env(f"drone={drone}", "reward=sparse", scenarios=scenarios.path)
-    assert set(env.reward_fn.weights) == {"capture", "out_of_view"}
+    assert set(env.reward_fn.weights) == {"capture", "out_of_view", "ground_contact"}
 
 
 # Specs for every combination -------------------------------------------------------------
@@ -102,16 +102,22 @@ def test_check_env_specs(scenarios, drone, dynamics, reward):
 def test_shaped_reward_is_paper_eq3():
     cfg = OmegaConf.load(CONF / "reward" / "shaped.yaml")
     reward = Reward(**cfg)
-    d = torch.tensor([1.0, 30.0, 60.0, 10.0, 0.0])
-    visible = torch.tensor([True, True, True, False, True])
-    captured = torch.tensor([True, False, False, False, False])
-    total, terms = reward(RewardContext(d, visible, captured, 60.0))
-    expected = [10.0, -2 * 30**2 / 60**2 - 0.1, -2.0 - 0.1, -1.0, -0.1]
+    d = torch.tensor([1.0, 30.0, 60.0, 10.0, 0.0, 30.0])
+    visible = torch.tensor([True, True, True, False, True, True])
+    captured = torch.tensor([True, False, False, False, False, False])
+    # Eq. 3 is the in-flight reward; the last case ends on the ground, which eq. 3 does not price.
+    grounded = torch.tensor([False, False, False, False, False, True])
+    total, terms = reward(RewardContext(d, visible, captured, grounded, 60.0))
+    crash = cfg.terms.ground_contact
+    eq3 = [10.0, -2 * 30**2 / 60**2 - 0.1, -2.0 - 0.1, -1.0, -0.1, -2 * 30**2 / 60**2 - 0.1]
+    expected = eq3[:-1] + [eq3[-1] + crash]
+    assert crash <= -1.0 / (1.0 - 0.99)  # a crash is never cheaper than staying out of view
     assert total.tolist() == pytest.approx(expected)
     assert sum(terms.values()).tolist() == pytest.approx(expected)
-    sparse = Reward(**OmegaConf.load(CONF / "reward" / "sparse.yaml"))
-    total, _ = sparse(RewardContext(d, visible, captured, 60.0))
-    assert total.tolist() == pytest.approx([10.0, 0.0, 0.0, -1.0, 0.0])
+    sparse_cfg = OmegaConf.load(CONF / "reward" / "sparse.yaml")
+    total, _ = Reward(**sparse_cfg)(RewardContext(d, visible, captured, grounded, 60.0))
+    expected = [10.0, 0.0, 0.0, -1.0, 0.0, sparse_cfg.terms.ground_contact]
+    assert total.tolist() == pytest.approx(expected)
 
 
 def test_unknown_reward_term_lists_valid_ones():

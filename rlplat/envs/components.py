@@ -134,17 +134,23 @@ class RewardContext:
         distance: (N,) m between attacker and defender at the end of the step.
         visible: (N,) bool, the defender inside the attacker's vision ellipsoid.
         captured: (N,) bool, the attacker came within the capture radius during the step.
+        grounded: (N,) bool, a drone is at or below the ground altitude after the step.
         distance_scale: m, the normalising distance of the ``distance_sq`` term.
     """
 
     distance: Tensor
     visible: Tensor
     captured: Tensor
+    grounded: Tensor
     distance_scale: float
 
 
 def _capture(c: RewardContext) -> Tensor:
     return c.captured.float()
+
+
+def _ground_contact(c: RewardContext) -> Tensor:
+    return (c.grounded & ~c.captured).float()
 
 
 def _out_of_view(c: RewardContext) -> Tensor:
@@ -166,6 +172,7 @@ REWARD_TERMS: dict[str, Callable[[RewardContext], Tensor]] = {
     "out_of_view": _out_of_view,
     "distance_sq": _distance_sq,
     "in_view_step": _in_view_step,
+    "ground_contact": _ground_contact,
 }
 
 
@@ -174,7 +181,8 @@ class Reward:
 
     With ``capture: 10, out_of_view: -1, distance_sq: -2, in_view_step: -0.1`` and
     ``distance_scale: 60`` this is paper eq. 3 exactly: +10 on capture; -1 if the defender is
-    out of view; otherwise -2 d^2 / 60^2 - 0.1.
+    out of view; otherwise -2 d^2 / 60^2 - 0.1. ``ground_contact`` prices the crash that ends
+    an episode (eq. 3 has no crash; see ``conf/reward/shaped.yaml``).
     """
 
     def __init__(self, *, terms: Mapping[str, float], distance_scale: float = 60.0) -> None:

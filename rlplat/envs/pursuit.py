@@ -107,7 +107,7 @@ class PursuitEnv(EnvBase):
         scenario_order: Literal["sequential", "shuffled", "random"] = "sequential",
         setpoint_acceptance: float = 1.0,
         setpoint_gain: float = 1.0,
-        pursuit_gain: float = 1.0,
+        pursuit_gain: float = 5.0,
         device: torch.device | str = "cpu",
     ) -> None:
         num_envs = dynamics.position.shape[0]
@@ -253,10 +253,11 @@ class PursuitEnv(EnvBase):
         rel = p[:, DEFENDER] - p[:, ATTACKER]
         distance, visible = rel.norm(dim=-1), inside_ellipsoid(rel, self.semi_axes)
         captured = _closest_approach(rel_before, rel) <= self.capture_radius
+        grounded = (p[..., 2] <= self.ground_altitude).any(-1)
         total, terms = self.reward_fn(
-            RewardContext(distance, visible, captured, self.reward_fn.distance_scale)
+            RewardContext(distance, visible, captured, grounded, self.reward_fn.distance_scale)
         )
-        terminated = captured | (p[..., 2] <= self.ground_altitude).any(-1)
+        terminated = captured | grounded
         if self.terminate_out_of_view:
             terminated |= ~visible
         truncated = (self.step_count >= self.max_steps) | (self.waypoint >= self.routes.shape[1])
