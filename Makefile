@@ -10,9 +10,12 @@ $(STAMP): pyproject.toml
 	$(VENV)/bin/pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
-# Main job: until the training pipeline lands, generate the default scenario set and print its
-# quality report.
+# Main job: train attacker_v3 with the defaults; ARGS passes Hydra overrides.
 train: $(STAMP)
+	$(VENV)/bin/python train.py $(ARGS)
+
+# The default scenario set and its quality report.
+scenarios: $(STAMP)
 	$(VENV)/bin/python -m rlplat.scenarios out_dir=data/scenarios/pursuit
 
 test: $(STAMP)

@@ -64,6 +64,7 @@ def test_cli_run_writes_the_run_directory(scenarios, tmp_path):  # noqa: F811
     ):
         assert key in summary
     assert summary["frames"] >= 256 and summary["scenario_digest"] == scenarios.digest
+    assert 0.0 <= summary["pure_pursuit_val_capture_rate"] <= 1.0
     assert (run / "checkpoints" / "best.pt").is_file()
     assert (run / "checkpoints" / "last.pt").is_file()
     assert (run / "learning_curve.png").read_bytes()[:4] == b"\x89PNG"
@@ -72,7 +73,12 @@ def test_cli_run_writes_the_run_directory(scenarios, tmp_path):  # noqa: F811
     with open(scalars / "eval" / "capture_rate.csv") as f:
         rows = list(csv.reader(f))
     assert [int(r[0]) for r in rows] == [128, 256]  # validated every 128 frames
-    for name in ("train/loss_qvalue", "time/frames_per_s", "train/updates"):
+    for name in (
+        "train/loss_qvalue",
+        "time/frames_per_s",
+        "train/updates",
+        "reference/capture_rate",
+    ):
         assert (scalars / f"{name}.csv").is_file(), name
 
 
@@ -151,6 +157,20 @@ def test_same_seed_same_training(scenarios, tmp_path):  # noqa: F811
     sb = load_checkpoint(tmp_path / "b" / "checkpoints" / "last.pt")["actor"]
     assert all(torch.equal(sa[k], sb[k]) for k in sa)
     assert a["test_mean_return"] == b["test_mean_return"]
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("algo.n_steps=0", "algo.n_steps: must be an integer >= 1, got 0"),
+        ("algo.utd_ratio=0", "algo.utd_ratio: must be > 0, got 0"),
+        ("algo.batch_size=-4", "algo.batch_size: must be > 0, got -4"),
+    ],
+)
+def test_bad_algo_values_are_refused_before_any_work(scenarios, tmp_path, override, message):  # noqa: F811
+    with pytest.raises(ConfigError, match=message):
+        tiny_run(scenarios, tmp_path, override)
+    assert not tmp_path.joinpath("config.yaml").exists()
 
 
 @pytest.mark.parametrize(

@@ -72,7 +72,8 @@ class Metrics:
 
 
 def plot_learning_curve(history: Mapping[str, list[tuple[int, float]]], path: Path) -> None:
-    """Validation capture rate and mean return, and training return, against frames (PNG)."""
+    """Validation capture rate (with the pure-pursuit reference) and mean return, and training
+    return, against frames (PNG)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -83,6 +84,9 @@ def plot_learning_curve(history: Mapping[str, list[tuple[int, float]]], path: Pa
         if history.get(name):
             x, y = zip(*history[name], strict=True)
             axis.plot(x, y, marker="o", label=f"validation {name.split('/')[1]}")
+    if history.get("reference/capture_rate"):
+        rate = history["reference/capture_rate"][-1][1]
+        top.axhline(rate, color="grey", linestyle="--", label="pure pursuit (validation)")
     if history.get("train/episode_return"):
         x, y = zip(*history["train/episode_return"], strict=True)
         bottom.plot(x, y, alpha=0.4, label="training episode return")

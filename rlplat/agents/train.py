@@ -31,8 +31,10 @@ from rlplat.agents.checkpoint import (
 )
 from rlplat.agents.metrics import Metrics, make_logger, plot_learning_curve
 from rlplat.agents.sac import SACAgent, net_spec
+from rlplat.agents.transitions import n_step_transitions, shape_rewards
 from rlplat.envs.factory import build_env, resolve_scenarios
 from rlplat.errors import ConfigError
+from rlplat.eval.baselines import PurePursuitPolicy
 from rlplat.eval.episodes import EpisodeResults, evaluate
 from rlplat.io import atomic_write_text
 
@@ -111,6 +113,11 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
         )
     if not algo.utd_ratio > 0:
         raise ConfigError(f"algo.utd_ratio: must be > 0, got {algo.utd_ratio}")
+    if not isinstance(algo.n_steps, int) or algo.n_steps < 1:
+        raise ConfigError(f"algo.n_steps: must be an integer >= 1, got {algo.n_steps}")
+    if algo.potential_weight and algo.potential_key not in ("distance",):
+        raise ConfigError(f"algo.potential_key: unknown '{algo.potential_key}'; valid: distance")
+    keep = (*TRANSITION_KEYS, "steps_to_next_obs") if algo.n_steps > 1 else TRANSITION_KEYS
     device = torch.device(cfg.train.device)
     ckpt_dir = run_dir / "checkpoints"
     resume_state = None
@@ -169,6 +176,11 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     atomic_write_text(run_dir / "config.yaml", OmegaConf.to_yaml(resolved))
     metrics = Metrics(run_dir, make_logger(cfg.logger, run_dir, cfg.drone.name, resolved))
 
+    # The scripted reference on the same validation split: the rate a policy has to beat.
+    reference = evaluate(val_env, PurePursuitPolicy(val_env))
+    metrics.log({f"reference/{k}": v for k, v in reference.summary().items()}, counters["frames"])
+    log.info("pure pursuit on the validation split: capture rate %.3f", reference.capture_rate)
+
     buffer = TensorDictReplayBuffer(
         storage=LazyTensorStorage(algo.buffer_size, device=device),
         batch_size=algo.batch_size,
@@ -183,6 +195,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
         init_random_frames=0 if resume_state is not None else algo.init_random_frames,
         exploration_type=ExplorationType.RANDOM,
         device=device,
+        auto_register_policy_transforms=False,  # a memoryless MLP policy: no transforms needed
     )
 
     def payload() -> dict[str, Any]:
@@ -205,6 +218,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
         counters["evals"] += 1
         values = {f"eval/{k}": v for k, v in results.summary().items()}
         values["time/eval_s"] = time.perf_counter() - t0
+        values["time/elapsed_s"] = time.perf_counter() - start
         metrics.log(values, counters["frames"])
         better = (results.capture_rate, results.mean_return) > (
             best["capture_rate"],
@@ -247,7 +261,11 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
             t_collected = time.perf_counter()
             n = batch.numel()
             counters["frames"] += n
-            buffer.extend(batch.select(*TRANSITION_KEYS).reshape(-1))
+            transitions = shape_rewards(
+                batch, algo.potential_key, algo.potential_weight, algo.gamma
+            )
+            transitions = n_step_transitions(transitions, algo.n_steps, algo.gamma)
+            buffer.extend(transitions.select(*keep).reshape(-1))
             values = _episode_metrics(batch, terms)
 
             if len(buffer) >= max(learning_starts, algo.batch_size):
@@ -306,6 +324,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
         "best_val_capture_rate": best["capture_rate"],
         "best_val_mean_return": best["mean_return"],
         "best_frames": best["frames"],
+        "pure_pursuit_val_capture_rate": reference.capture_rate,
         "test_capture_rate": test.capture_rate,
         "test_mean_return": test.mean_return,
         "test_scenarios": n_test,

@@ -1,0 +1,268 @@
+"""rlplat SAC against the paper's stack: Stable-Baselines3 SAC through the Gymnasium adapter.
+
+One run, three tables, figures as ratios against SB3 measured in the same run:
+
+(a) gradient updates per second at equal network (2x64 ReLU actor and critics) and batch (128),
+    replay sampling included: SB3 ``SAC.train`` against rlplat's ``SACAgent.update``, eager and
+    with ``algo.compile=true`` (its compile time printed apart);
+(b) frames per second of the whole training loop: SB3 ``learn`` with the paper's settings (one
+    env, one update per step) against ``rlplat.agents.train`` with the default ``algo=sac``;
+(c) wall-clock time until the validation capture rate reaches the threshold. Both policies are
+    scored by the same evaluator (``rlplat.eval.evaluate``, deterministic, the whole
+    validation split). SB3's clock stops while it is evaluated; rlplat's runs on, its own
+    validations included. SB3 stops at its cap; a capped run reads "> cap".
+
+    .venv/bin/python benchmarks/sac_vs_sb3.py [--threshold T] [--minutes 10] [--sb3-minutes 30]
+
+The default threshold is the pure-pursuit capture rate on the validation split, capped at 0.9
+(the training target). Parts can be run alone: ``--parts a`` takes about a minute.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import logging
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+from rlplat.agents import train
+from rlplat.agents.sac import SACAgent, net_spec
+from rlplat.agents.train import TRANSITION_KEYS
+from rlplat.config import compose_config
+from rlplat.envs.factory import build_env, resolve_scenarios
+from rlplat.eval.baselines import PurePursuitPolicy
+from rlplat.eval.episodes import evaluate
+
+PAPER = "algo=sac_paper"
+
+
+def fill_buffer(env, size: int) -> TensorDictReplayBuffer:
+    """A replay buffer of ``size`` random-action transitions of ``env``."""
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(size), batch_size=128)
+    td = env.reset()
+    while len(buffer) < size:
+        td = td.set("action", env.action_spec.rand())
+        td, nxt = env.step_and_maybe_reset(td)
+        buffer.extend(td.select(*TRANSITION_KEYS).clone())
+        td = nxt
+    return buffer
+
+
+def sb3_model(gym_env, seed: int = 0):
+    from stable_baselines3 import SAC
+
+    # The paper's settings; the rest are SB3's defaults.
+    return SAC(
+        "MlpPolicy",
+        gym_env,
+        learning_rate=1e-3,
+        batch_size=128,
+        gamma=0.99,
+        policy_kwargs={"net_arch": [64, 64]},
+        seed=seed,
+        device="cpu",
+        verbose=0,
+    )
+
+
+def part_a(cfg, scenarios, updates: int) -> list[tuple[str, float, str]]:
+    from stable_baselines3.common.logger import configure
+
+    from rlplat.envs.gym import PursuitGymEnv
+
+    rows = []
+    gym_env = PursuitGymEnv(scenarios, PAPER)
+    model = sb3_model(gym_env)
+    model.set_logger(configure(None, []))
+    obs, _ = gym_env.reset(seed=0)
+    for _ in range(5000):
+        action = gym_env.action_space.sample()
+        nxt, reward, term, trunc, _ = gym_env.step(action)
+        model.replay_buffer.add(
+            obs[None], nxt[None], action[None], np.array([reward]), np.array([term]), [{}]
+        )
+        obs = gym_env.reset()[0] if term or trunc else nxt
+    model.train(gradient_steps=20, batch_size=128)  # warm-up
+    t0 = time.perf_counter()
+    model.train(gradient_steps=updates, batch_size=128)
+    sb3 = updates / (time.perf_counter() - t0)
+    rows.append(("SB3 SAC.train (reference)", sb3, "1.00x"))
+
+    env = build_env(cfg, scenarios=scenarios, split="train", num_envs=32)
+    buffer = fill_buffer(env, 5000)
+    for compile_ in (False, True):
+        agent = SACAgent(
+            net_spec(env.obs_fn.scale, env.action_spec.shape[-1], cfg.algo),
+            env.action_spec[0],
+            gamma=0.99,
+            tau=0.005,
+            actor_lr=1e-3,
+            critic_lr=1e-3,
+            alpha_lr=1e-3,
+            compile=compile_,
+        )
+        t0 = time.perf_counter()
+        for _ in range(20):  # warm-up (and compilation)
+            agent.update(buffer.sample())
+        warm = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        for _ in range(updates):
+            agent.update(buffer.sample())
+        ours = updates / (time.perf_counter() - t0)
+        label = "rlplat SACAgent.update" + (f", compiled ({warm:.0f} s to compile)" * compile_)
+        rows.append((label, ours, f"{ours / sb3:.2f}x"))
+    return rows
+
+
+def sb3_until(cfg, scenarios, threshold: float, cap_s: float, eval_every: int) -> dict:
+    """Train SB3 with the paper's settings until the threshold or the cap (training time)."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    from rlplat.envs.gym import PursuitGymEnv
+
+    val_env = build_env(
+        cfg, scenarios=scenarios, split="val", num_envs=len(scenarios.split("val")),
+        scenario_order="sequential",
+    )  # fmt: skip
+    model = sb3_model(PursuitGymEnv(scenarios, PAPER))
+
+    def policy(td):
+        with torch.no_grad():
+            return td.set("action", model.policy.actor(td["observation"], deterministic=True))
+
+    class Clock(BaseCallback):
+        def __init__(self):
+            super().__init__()
+            self.train_s, self.mark, self.best, self.reached = 0.0, time.perf_counter(), 0.0, None
+
+        def _on_step(self) -> bool:
+            if self.num_timesteps % eval_every:
+                return True
+            self.train_s += time.perf_counter() - self.mark
+            rate = evaluate(val_env, policy).capture_rate
+            self.best = max(self.best, rate)
+            logging.info("SB3 %d frames, %.0f s: capture rate %.3f", self.num_timesteps,
+                         self.train_s, rate)  # fmt: skip
+            if rate >= threshold:
+                self.reached = self.train_s
+            self.mark = time.perf_counter()
+            return self.reached is None and self.train_s < cap_s
+
+    clock = Clock()
+    model.learn(total_timesteps=10**9, callback=clock)
+    return {
+        "frames": clock.num_timesteps,
+        "train_s": clock.train_s,
+        "fps": clock.num_timesteps / clock.train_s,
+        "reached_s": clock.reached,
+        "best": clock.best,
+    }
+
+
+def rlplat_until(overrides: list[str], threshold: float, minutes: float) -> dict:
+    """The default training run; time to threshold from its validation log."""
+    cfg = compose_config("train", ["train.progress=false", f"train.max_minutes={minutes}",
+                                   *overrides])  # fmt: skip
+    with tempfile.TemporaryDirectory() as tmp:
+        summary = train(cfg, run_dir=tmp)
+        scalars = Path(tmp) / "metrics" / "scalars"
+
+        def read(name):
+            with open(scalars / f"{name}.csv") as fh:
+                return [float(row[1]) for row in csv.reader(fh)]
+
+        rates, elapsed = read("eval/capture_rate"), read("time/elapsed_s")
+        fps = read("time/frames_per_s")[-1]
+    reached = next((t for r, t in zip(rates, elapsed, strict=True) if r >= threshold), None)
+    return {
+        "frames": summary["frames"],
+        "train_s": summary["wall_time_s"],
+        "fps": fps,
+        "reached_s": reached,
+        "best": summary["best_val_capture_rate"],
+    }
+
+
+def table(title: str, header: tuple[str, ...], rows) -> None:
+    print(f"\n{title}\n")
+    print("| " + " | ".join(header) + " |")
+    print("|" + "---|" * len(header))
+    for row in rows:
+        print("| " + " | ".join(str(x) for x in row) + " |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--parts", default="a,b,c", help="which tables: a, b, c")
+    parser.add_argument("--updates", type=int, default=2000, help="updates timed in (a)")
+    parser.add_argument("--threshold", type=float, default=None)
+    parser.add_argument("--minutes", type=float, default=10.0, help="rlplat's budget")
+    parser.add_argument("--sb3-minutes", type=float, default=30.0, help="SB3's cap")
+    parser.add_argument("--sb3-eval-every", type=int, default=10000, help="SB3 frames")
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides for both stacks")
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    parts = set(args.parts.split(","))
+
+    cfg = compose_config("train", [*args.overrides, PAPER])
+    scenarios = resolve_scenarios(cfg, None)
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
+    if "a" in parts:
+        rows = part_a(cfg, scenarios, args.updates)
+        table(
+            "(a) gradient updates/s, actor and critics 2x64 ReLU, batch 128",
+            ("implementation", "updates/s", "vs SB3"),
+            [(name, f"{ups:,.0f}", ratio) for name, ups, ratio in rows],
+        )
+    if parts & {"b", "c"}:
+        threshold = args.threshold
+        if threshold is None:
+            val_env = build_env(
+                cfg, scenarios=scenarios, split="val", num_envs=len(scenarios.split("val")),
+                scenario_order="sequential",
+            )  # fmt: skip
+            threshold = min(0.9, evaluate(val_env, PurePursuitPolicy(val_env)).capture_rate)
+        ours = rlplat_until(args.overrides, threshold, args.minutes)
+        sb3 = sb3_until(cfg, scenarios, threshold, 60 * args.sb3_minutes, args.sb3_eval_every)
+
+        def reached(r, cap):
+            return f"{r['reached_s']:.0f}" if r["reached_s"] is not None else f"> {cap:.0f}"
+
+        table(
+            "(b) frames/s of the whole training loop",
+            ("stack", "frames", "frames/s", "vs SB3"),
+            [
+                ("SB3 SAC, paper settings (reference)", sb3["frames"], f"{sb3['fps']:.0f}",
+                 "1.00x"),
+                ("rlplat, default algo=sac", ours["frames"], f"{ours['fps']:.0f}",
+                 f"{ours['fps'] / sb3['fps']:.1f}x"),
+            ],
+        )  # fmt: skip
+        cap_sb3, cap_ours = 60 * args.sb3_minutes, 60 * args.minutes
+        speedup = (
+            f"{sb3['reached_s'] / ours['reached_s']:.1f}x"
+            if sb3["reached_s"] and ours["reached_s"]
+            else f"> {cap_sb3 / ours['reached_s']:.1f}x"
+            if ours["reached_s"]
+            else "n/a (rlplat did not reach it)"
+        )
+        table(
+            f"(c) wall-clock to validation capture rate >= {threshold:.3f}",
+            ("stack", "seconds", "best capture rate", "vs SB3"),
+            [
+                ("SB3 SAC, paper settings (reference)", reached(sb3, cap_sb3),
+                 f"{sb3['best']:.3f}", "1.00x"),
+                ("rlplat, default algo=sac", reached(ours, cap_ours), f"{ours['best']:.3f}",
+                 speedup),
+            ],
+        )  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,65 @@
+"""What the learner trains on: potential-based shaping and n-step transitions of a batch."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+
+
+def shape_rewards(batch: TensorDictBase, key: str, weight: float, gamma: float) -> TensorDictBase:
+    """Potential-based shaping: ``("next", "reward")`` + gamma * Phi(s') - Phi(s).
+
+    ``Phi = weight * batch[key]`` (e.g. ``key="distance"``, ``weight=-1``: one unit of reward per
+    metre gained on the opponent). Shaping of this form leaves the optimal policy of the
+    discounted task unchanged (Ng, Harada and Russell, 1999); it only makes progress visible at
+    once instead of through many bootstraps. Returns a shallow copy; ``weight == 0`` returns the
+    batch itself. What the runs report (returns, capture rates) stays the env's own reward.
+    """
+    if weight == 0:
+        return batch
+    phi, phi_next = weight * batch[key], weight * batch["next", key]
+    reward = batch["next", "reward"] + (gamma * phi_next - phi).view_as(batch["next", "reward"])
+    out = batch.clone(False)
+    out["next"] = out["next"].clone(False).set("reward", reward)
+    return out
+
+
+def n_step_transitions(batch: TensorDictBase, n: int, gamma: float) -> TensorDictBase:
+    """Turn one-step transitions into n-step ones, in place of ``("next", ...)``.
+
+    ``batch`` has batch shape ``(envs, T)`` (a collector's output), with ``("next", "reward")``,
+    ``("next", "done")`` and ``("next", "terminated")``. Each transition t keeps its observation
+    and action and looks ahead k = min(n, steps to the end of its episode, steps left in the
+    batch) steps: its reward becomes ``sum_{i<k} gamma^i r_{t+i}``, its ``("next", ...)``
+    entries those of step ``t + k - 1`` (so ``terminated`` says whether the episode ended inside
+    the window), and ``steps_to_next_obs`` is k, which TorchRL's TD(0) estimator reads to
+    discount the bootstrap by ``gamma^k``. ``n = 1`` returns the batch unchanged.
+    """
+    if n == 1:
+        return batch
+    envs, T = batch.shape
+    reward = batch["next", "reward"]
+    done = batch["next", "done"].squeeze(-1)
+    t = torch.arange(T, device=done.device)
+    last = t.expand(envs, T).clone()  # index of the window's last step
+    total = reward.clone()
+    open_ = ~done  # the window can still grow
+    for i in range(1, n):
+        step = (t + i).clamp(max=T - 1).expand(envs, T)
+        grow = open_ & (t + i < T)
+        total = total + torch.where(
+            grow.unsqueeze(-1), gamma**i * reward.gather(1, step.unsqueeze(-1)), 0.0
+        )
+        last = torch.where(grow, step, last)
+        open_ = grow & ~done.gather(1, step)
+    out = batch.clone(False)
+    nxt = batch["next"]
+    gathered = nxt.apply(lambda x: x.gather(1, _expand_index(last, x)))
+    gathered.set("reward", total)
+    out.set("next", gathered)
+    out.set("steps_to_next_obs", (last - t + 1).unsqueeze(-1))
+    return out
+
+
+def _expand_index(index: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    return index.reshape(*index.shape, *([1] * (like.ndim - 2))).expand_as(like)
