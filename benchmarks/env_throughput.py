@@ -1,7 +1,8 @@
 """Env throughput: env.step through the TorchRL API with random actions.
 
 Prints, per dynamics and batch size N, env steps/s and agent-steps/s (steps/s x N), the
-time of one step, and the peak resident memory of the process. The reference row of each
+time of one step, the peak resident memory of the process and, on a GPU, the peak memory
+allocated on the device while that row ran. The reference row of each
 table is the bare dynamics advance (the physics alone) measured in the same run, so the
 ratio column shows what the env adds on top of the simulator.
 
@@ -21,6 +22,12 @@ from rlplat import make_env
 
 def peak_rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def peak_gpu_mib(device: str) -> str:
+    if not device.startswith("cuda"):
+        return "-"
+    return f"{torch.cuda.max_memory_allocated() / 2**20:.0f}"
 
 
 def sync(device: str) -> None:
@@ -66,10 +73,12 @@ def main() -> None:
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, device {args.device}")
     print(
         f"{'dynamics':<10} {'N':>7} {'step ms':>9} {'steps/s':>9} {'agent-steps/s':>14} "
-        f"{'physics ms':>11} {'env/physics':>12} {'peak RSS MiB':>13}"
+        f"{'physics ms':>11} {'env/physics':>12} {'peak RSS MiB':>13} {'peak GPU MiB':>13}"
     )
     for dyn in args.dynamics:
         for n in args.sizes:
+            if args.device.startswith("cuda"):
+                torch.cuda.reset_peak_memory_stats()
             env = make_env(f"dynamics={dyn}", num_envs=n, scenarios=scenarios, device=args.device)
             probe = time_steps(env, 3, args.device)
             steps = max(10, int(args.seconds / probe))
@@ -77,7 +86,8 @@ def main() -> None:
             phys_s = time_physics(env, max(10, steps // 2), args.device)
             print(
                 f"{dyn:<10} {n:>7} {step_s * 1e3:>9.3f} {1 / step_s:>9.0f} {n / step_s:>14,.0f} "
-                f"{phys_s * 1e3:>11.3f} {step_s / phys_s:>12.2f} {peak_rss_mib():>13.0f}"
+                f"{phys_s * 1e3:>11.3f} {step_s / phys_s:>12.2f} {peak_rss_mib():>13.0f} "
+                f"{peak_gpu_mib(args.device):>13}"
             )
 
 
