@@ -44,6 +44,19 @@ def test_potential_shaping_rewards_progress_and_telescopes():
     assert shape_rewards(batch, "distance", weight=0.0, gamma=0.99) is batch
 
 
+def test_potential_is_zero_on_a_terminal_state():
+    # Episode 1 ends (capture or crash) at t=2: its last bonus is -Phi(s_2), whatever the
+    # distance after the step, so every episode's shaped return is its return - Phi(s_0).
+    batch = trajectory(done_at=(2,))
+    batch["distance"] = torch.tensor([[10.0, 8.0, 6.0, 5.0, 5.0, 7.0]]).unsqueeze(-1)
+    batch["next", "distance"] = batch["distance"].roll(-1, 1)
+    out = shape_rewards(batch, "distance", weight=-1.0, gamma=1.0)
+    bonus = (out["next", "reward"] - batch["next", "reward"]).flatten()
+    assert bonus[:3].tolist() == [2.0, 2.0, 6.0]  # the last: -Phi(s_2), not Phi(s_3) - Phi(s_2)
+    assert bonus[:3].sum().item() == 10.0  # -Phi(s_0): the episode's bonuses sum to -Phi(s_0)
+    assert bonus[3].item() == -5.0 + 5.0  # the next episode starts afresh
+
+
 def test_one_step_is_the_identity():
     batch = trajectory()
     assert n_step_transitions(batch, n=1, gamma=0.99) is batch
@@ -64,3 +77,79 @@ def test_pure_pursuit_reference_captures_and_a_hover_does_not(scenarios):  # noq
     assert hover.capture_rate < pursuit.capture_rate
     assert not pursuit.grounded.any()
     assert pursuit.capture_rate == pytest.approx(evaluate(env, PurePursuitPolicy(env)).capture_rate)
+
+
+@pytest.mark.slow
+def test_compiled_update_matches_eager(scenarios):  # noqa: F811
+    import torch._inductor.config
+
+    from rlplat.agents.sac import SACAgent, net_spec
+    from rlplat.config import compose_config
+    from rlplat.envs.factory import build_env
+
+    cfg = compose_config("train", [f"scenarios_dir={scenarios.path}", "algo.batch_size=64"])
+    env = build_env(cfg, scenarios=scenarios, split="train", num_envs=64)
+    td = env.rand_step(env.reset())
+    batch = td.select("observation", "action", ("next", "observation"), ("next", "reward"),
+                      ("next", "done"), ("next", "terminated"))  # fmt: skip
+    # Compiled code draws from eager's RNG stream; the config patch is undone on exit.
+    with torch._inductor.config.patch(fallback_random=True):
+        agents = []
+        for compile_ in (False, True):
+            torch.manual_seed(0)
+            agents.append(
+                SACAgent(
+                    net_spec(env.obs_fn.scale, 3, cfg.algo),
+                    env.action_spec[0],
+                    gamma=0.99,
+                    tau=0.02,
+                    actor_lr=1e-3,
+                    critic_lr=1e-3,
+                    alpha_lr=1e-3,
+                    compile=compile_,
+                )  # fmt: skip
+            )
+        # Past the warm-up, the compiled update runs without guard checks; it must still match,
+        # also after a checkpoint is taken (state_dict must not change what the graph saw).
+        for step in range(SACAgent.WARMUP_CALLS + 3):
+            if step == SACAgent.WARMUP_CALLS + 1:
+                for agent in agents:
+                    agent.state_dict()
+            torch.manual_seed(step)
+            eager = agents[0].update(batch)
+            torch.manual_seed(step)
+            compiled = agents[1].update(batch)
+            assert compiled["loss_qvalue"].item() == pytest.approx(
+                eager["loss_qvalue"].item(), rel=1e-3
+            )
+        for (name, a), b in zip(
+            agents[0].loss.state_dict().items(), agents[1].loss.state_dict().values(), strict=True
+        ):
+            assert torch.allclose(a, b, atol=1e-4), name
+
+
+def test_action_margin_reaches_full_scale_inside_the_bounds():
+    from torchrl.data import Bounded
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from rlplat.agents.sac import NetSpec, make_actor, make_critic
+
+    spec = Bounded(-1.0, 1.0, shape=(3,))
+    plain, wide = (
+        NetSpec(3, 3, (16,), (16,), "relu", (1.0, 1.0, 1.0), action_margin=m) for m in (0, 0.2)
+    )
+    torch.manual_seed(0)
+    obs = TensorDict(observation=torch.randn(4096, 3) * 50, batch_size=[4096])
+    for net, saturates in ((plain, False), (wide, True)):
+        actor = make_actor(net, spec)
+        for kind in (ExplorationType.RANDOM, ExplorationType.DETERMINISTIC):
+            with set_exploration_type(kind):
+                action = actor(obs.clone())["action"]
+            assert action.abs().max() <= 1.0  # always inside the env's bounds
+            assert bool((action.abs() == 1.0).any()) == saturates, (net, kind)
+    # Past the bounds the critic sees what the env does: the clamped command.
+    critic = make_critic(wide)
+    td = TensorDict(observation=torch.randn(8, 3), action=torch.full((8, 3), 1.0), batch_size=[8])
+    q_edge = critic(td.clone())["state_action_value"]
+    q_past = critic(td.set("action", torch.full((8, 3), 1.15)))["state_action_value"]
+    assert torch.equal(q_edge, q_past)

@@ -25,6 +25,7 @@ TINY = (
     "algo.utd_ratio=0.1",
     "algo.actor_cells=[32,32]",
     "algo.critic_cells=[32,32]",
+    "algo.compile=false",
     "train.total_frames=256",
     "train.eval_every_frames=128",
     "train.progress=false",
@@ -89,8 +90,9 @@ def test_cli_run_writes_the_run_directory(scenarios, tmp_path):  # noqa: F811
         ("drone=attacker_v2", "reward=sparse"),
         ("drone=attacker_v3", "dynamics=quadrotor", "env.time_limit=1"),
         ("algo=sac_paper", "algo.frames_per_batch=4", "algo.num_envs=4", "algo.utd_ratio=0.05"),
+        ("algo.init_policy=random", "algo.action_margin=0", "algo.target_entropy=-5"),
     ],
-    ids=["v1", "v2-sparse", "v3-quadrotor", "sac_paper"],
+    ids=["v1", "v2-sparse", "v3-quadrotor", "sac_paper", "random-start"],
 )
 def test_component_swaps_train(scenarios, tmp_path, overrides):  # noqa: F811
     summary = tiny_run(scenarios, tmp_path, *overrides)
@@ -165,6 +167,12 @@ def test_same_seed_same_training(scenarios, tmp_path):  # noqa: F811
         ("algo.n_steps=0", "algo.n_steps: must be an integer >= 1, got 0"),
         ("algo.utd_ratio=0", "algo.utd_ratio: must be > 0, got 0"),
         ("algo.batch_size=-4", "algo.batch_size: must be > 0, got -4"),
+        (
+            "algo.init_policy=expert",
+            "algo.init_policy: unknown 'expert'; valid: random, pure_pursuit",
+        ),
+        ("algo.init_noise=-1", "algo.init_noise: must be >= 0, got -1"),
+        ("algo.action_margin=2", r"algo.action_margin: must be in \[0, 1\], got 2.0"),
     ],
 )
 def test_bad_algo_values_are_refused_before_any_work(scenarios, tmp_path, override, message):  # noqa: F811

@@ -30,6 +30,7 @@ class NetSpec:
     critic_cells: tuple[int, ...]
     activation: str
     obs_scale: tuple[float, ...]  # the networks see observation / obs_scale
+    action_margin: float = 0.0  # the tanh squashes onto the bounds widened by this fraction
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -39,18 +40,28 @@ class NetSpec:
             "actor_cells": list(self.actor_cells),
             "critic_cells": list(self.critic_cells),
             "activation": self.activation,
+            "action_margin": self.action_margin,
         }
 
 
 class Scaled(nn.Module):
-    """``body(cat(observation / scale, *rest))``: fixed input scaling in front of an MLP."""
+    """``body(cat(observation / scale, *rest))``: fixed input scaling in front of an MLP.
 
-    def __init__(self, body: nn.Module, scale: tuple[float, ...], device=None) -> None:
+    With ``clamp``, each further input (the critic's action) is first clamped to
+    ``[-clamp, clamp]``: what the env does to an action, so Q is flat past the bounds.
+    """
+
+    def __init__(
+        self, body: nn.Module, scale: tuple[float, ...], device=None, clamp: float | None = None
+    ) -> None:
         super().__init__()
         self.body = body
+        self.clamp = clamp
         self.register_buffer("inv_scale", 1.0 / torch.tensor(scale, device=device))
 
     def forward(self, observation: torch.Tensor, *rest: torch.Tensor) -> torch.Tensor:
+        if self.clamp is not None:
+            rest = tuple(x.clamp(-self.clamp, self.clamp) for x in rest)
         return self.body(torch.cat([observation * self.inv_scale, *rest], -1))
 
 
@@ -60,6 +71,13 @@ def make_actor(net: NetSpec, action_spec: TensorSpec, device: torch.device | str
     Reads ``observation``, writes ``loc``, ``scale`` and ``action``. Under
     ``ExplorationType.DETERMINISTIC`` the action is the distribution's deterministic sample
     (tanh of the mean).
+
+    A tanh never reaches its bounds, and SAC's entropy bonus keeps the mean away from them, so
+    a full-scale command (every axis at maximum speed, what a pursuit needs) is out of reach.
+    With ``net.action_margin = m`` the tanh squashes onto the bounds widened by ``m`` of their
+    half-width and the written action is clamped back onto the spec (``safe``): a whole band
+    of pre-clamp values means full scale, which the policy reaches with finite means and
+    without paying entropy. The critic clamps its action input the same way.
     """
     body = MLP(
         in_features=net.obs_dim,
@@ -76,12 +94,15 @@ def make_actor(net: NetSpec, action_spec: TensorSpec, device: torch.device | str
         in_keys=["observation"],
         out_keys=["loc", "scale"],
     )
+    low, high = action_spec.space.low, action_spec.space.high
+    pad = net.action_margin * (high - low) / 2
     return ProbabilisticActor(
         module,
         in_keys=["loc", "scale"],
         spec=action_spec,
+        safe=net.action_margin > 0,
         distribution_class=TanhNormal,
-        distribution_kwargs={"low": action_spec.space.low, "high": action_spec.space.high},
+        distribution_kwargs={"low": low - pad, "high": high + pad},
         default_interaction_type=ExplorationType.RANDOM,
         return_log_prob=False,
     )
@@ -96,7 +117,10 @@ def make_critic(net: NetSpec, device: torch.device | str = "cpu") -> ValueOperat
         activation_class=ACTIVATIONS[net.activation],
         device=device,
     )
-    return ValueOperator(Scaled(body, net.obs_scale, device), in_keys=["observation", "action"])
+    clamp = 1.0 if net.action_margin > 0 else None  # actions are in [-1, 1] (eq. 2)
+    return ValueOperator(
+        Scaled(body, net.obs_scale, device, clamp=clamp), in_keys=["observation", "action"]
+    )
 
 
 class SACAgent:
@@ -146,6 +170,9 @@ class SACAgent:
             delay_qvalue=True,
         )
         self.loss.make_value_estimator(gamma=gamma)
+        # SACLoss registers its target-entropy buffer on first use (a checkpoint's state_dict
+        # does that too); do it now, so that a compiled update never sees the module change.
+        _ = self.loss.target_entropy
         self.target_updater = SoftUpdate(self.loss, tau=tau)
         self.optimizers = {
             "actor": torch.optim.Adam(self.loss.actor_network_params.values(True, True), actor_lr),
@@ -155,10 +182,24 @@ class SACAgent:
             "alpha": torch.optim.Adam([self.loss.log_alpha], alpha_lr),
         }
         self._update = torch.compile(self._update_eager) if compile else self._update_eager
+        self._compiled_calls = 0 if compile else None
+
+    #: Compiled updates run with guard checks until then; later batches have the same keys,
+    #: shapes and dtypes (one replay buffer, one batch size), so the guards are skipped.
+    WARMUP_CALLS = 3
 
     def update(self, batch: TensorDictBase) -> dict[str, float]:
         """One gradient step on every loss, then the soft target update; returns the losses."""
-        out = self._update(batch)
+        if self._compiled_calls is None or self._compiled_calls < self.WARMUP_CALLS:
+            out = self._update(batch)
+            if self._compiled_calls is not None:
+                self._compiled_calls += 1
+        else:
+            # Guard evaluation costs as much as the small networks' arithmetic. Skipping it is
+            # sound only while every batch looks like the warm-up ones, which a run's single
+            # replay buffer and batch size guarantee.
+            with torch.compiler.set_stance("default", skip_guard_eval_unsafe=True):
+                out = self._update(batch)
         self.target_updater.step()
         return out
 
@@ -202,6 +243,9 @@ def net_spec(obs_scale: Sequence[float], action_dim: int, algo: Mapping[str, Any
         cells = algo[key]
         if not isinstance(cells, Sequence) or not cells or any(int(c) < 1 for c in cells):
             raise ConfigError(f"algo.{key}: a non-empty list of positive widths, got {cells}")
+    margin = float(algo.get("action_margin", 0.0))
+    if not 0.0 <= margin <= 1.0:
+        raise ConfigError(f"algo.action_margin: must be in [0, 1], got {margin}")
     return NetSpec(
         obs_dim=len(obs_scale),
         obs_scale=tuple(float(x) for x in obs_scale),
@@ -209,4 +253,5 @@ def net_spec(obs_scale: Sequence[float], action_dim: int, algo: Mapping[str, Any
         actor_cells=tuple(int(c) for c in algo["actor_cells"]),
         critic_cells=tuple(int(c) for c in algo["critic_cells"]),
         activation=act,
+        action_margin=margin,
     )

@@ -34,7 +34,7 @@ from rlplat.agents.sac import SACAgent, net_spec
 from rlplat.agents.transitions import n_step_transitions, shape_rewards
 from rlplat.envs.factory import build_env, resolve_scenarios
 from rlplat.errors import ConfigError
-from rlplat.eval.baselines import PurePursuitPolicy
+from rlplat.eval.baselines import NoisyPolicy, PurePursuitPolicy
 from rlplat.eval.episodes import EpisodeResults, evaluate
 from rlplat.io import atomic_write_text
 
@@ -49,6 +49,10 @@ TRANSITION_KEYS = (
     ("next", "done"),
     ("next", "terminated"),
 )
+
+
+#: Who flies the first ``algo.init_random_frames`` frames, which fill the replay buffer.
+INIT_POLICIES = ("random", "pure_pursuit")
 
 
 @dataclass(frozen=True)
@@ -115,6 +119,12 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
         raise ConfigError(f"algo.utd_ratio: must be > 0, got {algo.utd_ratio}")
     if not isinstance(algo.n_steps, int) or algo.n_steps < 1:
         raise ConfigError(f"algo.n_steps: must be an integer >= 1, got {algo.n_steps}")
+    if algo.init_policy not in INIT_POLICIES:
+        raise ConfigError(
+            f"algo.init_policy: unknown '{algo.init_policy}'; valid: {', '.join(INIT_POLICIES)}"
+        )
+    if not algo.init_noise >= 0:
+        raise ConfigError(f"algo.init_noise: must be >= 0, got {algo.init_noise}")
     if algo.potential_weight and algo.potential_key not in ("distance",):
         raise ConfigError(f"algo.potential_key: unknown '{algo.potential_key}'; valid: distance")
     keep = (*TRANSITION_KEYS, "steps_to_next_obs") if algo.n_steps > 1 else TRANSITION_KEYS
@@ -187,12 +197,14 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     )
     # The buffer is not checkpointed: a resumed run refills it with its current policy.
     learning_starts = algo.init_random_frames
+    # A scripted init_policy fills the buffer before the collector starts, also on a resume.
+    scripted_start = algo.init_policy != "random" and learning_starts > 0
     collector = Collector(
         train_env,
         agent.actor,
         frames_per_batch=algo.frames_per_batch,
         total_frames=-1,
-        init_random_frames=0 if resume_state is not None else algo.init_random_frames,
+        init_random_frames=0 if resume_state is not None or scripted_start else learning_starts,
         exploration_type=ExplorationType.RANDOM,
         device=device,
         auto_register_policy_transforms=False,  # a memoryless MLP policy: no transforms needed
@@ -242,6 +254,11 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
 
     start = time.perf_counter() - counters["wall_time_s"]
     deadline = None if budget.minutes is None else start + 60.0 * budget.minutes
+    if scripted_start:
+        prefilled = _prefill(buffer, train_env, env, algo, keep)
+        if resume_state is None:  # a resumed run has counted those frames already
+            counters["frames"] += prefilled
+        log.info("replay buffer filled with %d frames of noisy %s", len(buffer), algo.init_policy)
     next_eval = (
         counters["frames"] // cfg.train.eval_every_frames + 1
     ) * cfg.train.eval_every_frames
@@ -261,11 +278,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
             t_collected = time.perf_counter()
             n = batch.numel()
             counters["frames"] += n
-            transitions = shape_rewards(
-                batch, algo.potential_key, algo.potential_weight, algo.gamma
-            )
-            transitions = n_step_transitions(transitions, algo.n_steps, algo.gamma)
-            buffer.extend(transitions.select(*keep).reshape(-1))
+            _store(buffer, batch, algo, keep)
             values = _episode_metrics(batch, terms)
 
             if len(buffer) >= max(learning_starts, algo.batch_size):
@@ -345,6 +358,31 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
         run_dir,
     )
     return summary
+
+
+def _prefill(buffer, train_env, env, algo, keep) -> int:
+    """Fill the replay buffer with ``algo.init_random_frames`` frames of the scripted
+    ``algo.init_policy`` plus Gaussian noise (``algo.init_noise``); returns the frames."""
+    policy = NoisyPolicy(PurePursuitPolicy(env), algo.init_noise)
+    steps = algo.frames_per_batch // algo.num_envs
+    frames, td = 0, train_env.reset()
+    while frames < algo.init_random_frames:
+        trajectory = []
+        for _ in range(steps):  # what a collector does, with a scripted policy
+            out, td = train_env.step_and_maybe_reset(policy(td))
+            trajectory.append(out)
+        batch = torch.stack(trajectory, dim=1)  # (envs, time), as a collector's batch
+        _store(buffer, batch, algo, keep)
+        frames += batch.numel()
+    return frames
+
+
+def _store(buffer, batch, algo, keep) -> None:
+    """Add a collected ``(envs, time)`` batch to the buffer as what the learner trains on:
+    shaped rewards, n-step transitions, only the ``keep`` keys."""
+    transitions = shape_rewards(batch, algo.potential_key, algo.potential_weight, algo.gamma)
+    transitions = n_step_transitions(transitions, algo.n_steps, algo.gamma)
+    buffer.extend(transitions.select(*keep).reshape(-1))
 
 
 def _episode_metrics(batch, terms: list[str]) -> dict[str, float]:

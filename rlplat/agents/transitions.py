@@ -10,14 +10,19 @@ def shape_rewards(batch: TensorDictBase, key: str, weight: float, gamma: float) 
     """Potential-based shaping: ``("next", "reward")`` + gamma * Phi(s') - Phi(s).
 
     ``Phi = weight * batch[key]`` (e.g. ``key="distance"``, ``weight=-1``: one unit of reward per
-    metre gained on the opponent). Shaping of this form leaves the optimal policy of the
-    discounted task unchanged (Ng, Harada and Russell, 1999); it only makes progress visible at
-    once instead of through many bootstraps. Returns a shallow copy; ``weight == 0`` returns the
-    batch itself. What the runs report (returns, capture rates) stays the env's own reward.
+    metre gained on the opponent), and ``Phi = 0`` on a terminal state (``("next",
+    "terminated")``: after a capture or a crash nothing follows). Shaping of this form leaves the
+    optimal policy of the discounted episodic task unchanged (Ng, Harada and Russell, 1999):
+    every episode's shaped return is its return minus ``Phi(s_0)``. It only makes progress
+    visible at once instead of through many bootstraps. A truncated step keeps ``Phi(s')``: the
+    learner bootstraps there. Returns a shallow copy; ``weight == 0`` returns the batch itself.
+    What the runs report (returns, capture rates) stays the env's own reward.
     """
     if weight == 0:
         return batch
-    phi, phi_next = weight * batch[key], weight * batch["next", key]
+    terminal = batch["next", "terminated"].view_as(batch["next", key])
+    phi = weight * batch[key]
+    phi_next = (weight * batch["next", key]).masked_fill(terminal, 0.0)
     reward = batch["next", "reward"] + (gamma * phi_next - phi).view_as(batch["next", "reward"])
     out = batch.clone(False)
     out["next"] = out["next"].clone(False).set("reward", reward)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import torch
 from tensordict import TensorDictBase
 
 from rlplat.envs.pursuit import PursuitEnv
@@ -29,3 +30,22 @@ class PurePursuitPolicy:
         rel = p[:, 1 - me] - p[:, me]
         speed = self.env.max_speed[:, me].unsqueeze(-1)
         return td.set("action", (self.gain * rel / speed).clamp(-1.0, 1.0))
+
+
+class NoisyPolicy:
+    """A scripted policy with Gaussian exploration: ``clamp(action + noise_std * N(0, 1))``.
+
+    Fills a replay buffer with a classical controller's experience, widened by noise so that
+    the critic sees actions around the controller's too. Draws from torch's global generator
+    (seeded by the run).
+    """
+
+    def __init__(self, policy, noise_std: float) -> None:
+        self.policy = policy
+        self.noise_std = float(noise_std)
+
+    def __call__(self, td: TensorDictBase) -> TensorDictBase:
+        td = self.policy(td)
+        action = td["action"]
+        noise = torch.randn(action.shape, device=action.device, dtype=action.dtype)
+        return td.set("action", (action + self.noise_std * noise).clamp(-1.0, 1.0))
