@@ -187,6 +187,7 @@ def rlplat_until(overrides: list[str], minutes: float) -> dict:
         "fps": fps,
         "history": list(zip(elapsed, rates, strict=True)),
         "best": summary["best_val_capture_rate"],
+        "summary": summary,
     }
 
 
@@ -270,6 +271,14 @@ def main() -> None:
             f"(best: SB3 {sb3['best']:.3f}, rlplat {ours['best']:.3f})",
             ("capture rate", "SB3 (reference)", "rlplat", "rlplat faster by"),
             rows,
+        )
+        run = ours["summary"]
+        print(
+            f"\nrlplat run: {run['frames']:,} frames, {run['updates']:,} updates in "
+            f"{run['wall_time_s']:.0f} s; best validation capture rate "
+            f"{run['best_val_capture_rate']:.3f} at {run['best_frames']:,} frames; "
+            f"test capture rate {run['test_capture_rate']:.3f}; "
+            f"pure pursuit on validation {run['pure_pursuit_val_capture_rate']:.3f}"
         )
 
 
