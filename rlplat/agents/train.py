@@ -195,9 +195,10 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
         storage=LazyTensorStorage(algo.buffer_size, device=device),
         batch_size=algo.batch_size,
     )
-    # The buffer is not checkpointed: a resumed run refills it with its current policy.
+    # The buffer is not checkpointed: a resumed run refills it (see the scripted start below).
     learning_starts = algo.init_random_frames
-    # A scripted init_policy fills the buffer before the collector starts, also on a resume.
+    # A scripted init_policy fills the buffer before the collector starts, also on a resume;
+    # otherwise the collector starts with random actions, or with the policy on a resume.
     scripted_start = algo.init_policy != "random" and learning_starts > 0
     collector = Collector(
         train_env,
