@@ -1,10 +1,14 @@
 """Env throughput: env.step through the TorchRL API with random actions.
 
-Prints, per dynamics and batch size N, env steps/s and agent-steps/s (steps/s x N), the
-time of one step, the peak resident memory of the process and, on a GPU, the peak memory
-allocated on the device while that row ran. The reference row of each
-table is the bare dynamics advance (the physics alone) measured in the same run, so the
-ratio column shows what the env adds on top of the simulator.
+Prints, per dynamics, step mode and batch size N, env steps/s and agent-steps/s (steps/s x N),
+the time of one step, the peak resident memory of the process and, on a GPU, the peak memory
+allocated on the device while that row ran. The reference of each row is the bare dynamics
+advance (the physics alone) measured in the same run, so the ratio column shows what the env
+adds on top of the simulator. Modes: ``eager`` (the default env) and ``compiled``
+(``env.compile_step=true``: the step's numerical work as one ``torch.compile`` program; the
+``compile s`` column is the time of the first steps, compilation included). The actions are
+drawn from the action spec before timing (64 of them, cycled), so a policy's cost is not
+counted; done envs are reset as a collector would.
 
     .venv/bin/python benchmarks/env_throughput.py [--device cuda] [--sizes 1 4096]
 """
@@ -18,6 +22,8 @@ import time
 import torch
 
 from rlplat import make_env
+
+MODES = {"eager": "false", "compiled": "true"}  # mode -> env.compile_step
 
 
 def peak_rss_mib() -> float:
@@ -35,18 +41,20 @@ def sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def time_steps(env, steps: int, device: str) -> float:
-    """Seconds per env.step, random actions, done envs reset as a collector would."""
+def time_steps(env, steps: int, device: str) -> tuple[float, float]:
+    """Seconds of the 5 warm-up steps (compilation included) and per step after them."""
+    actions = [env.action_spec.rand() for _ in range(64)]
     td = env.reset()
-    action_spec = env.action_spec
-    for _ in range(5):  # warm-up
-        td = env.step_and_maybe_reset(td.set("action", action_spec.rand()))[1]
-    sync(device)
     t0 = time.perf_counter()
-    for _ in range(steps):
-        td = env.step_and_maybe_reset(td.set("action", action_spec.rand()))[1]
+    for i in range(5):
+        td = env.step_and_maybe_reset(td.set("action", actions[i]))[1]
     sync(device)
-    return (time.perf_counter() - t0) / steps
+    warmup = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    for i in range(steps):
+        td = env.step_and_maybe_reset(td.set("action", actions[i % len(actions)]))[1]
+    sync(device)
+    return warmup, (time.perf_counter() - t0) / steps
 
 
 def time_physics(env, steps: int, device: str) -> float:
@@ -67,28 +75,39 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--sizes", type=int, nargs="+", default=[1, 256, 4096])
     parser.add_argument("--dynamics", nargs="+", default=["velocity", "quadrotor"])
+    parser.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES))
     parser.add_argument("--seconds", type=float, default=3.0, help="time budget per row")
     args = parser.parse_args()
     scenarios = make_env(num_envs=1).scenario_set
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, device {args.device}")
     print(
-        f"{'dynamics':<10} {'N':>7} {'step ms':>9} {'steps/s':>9} {'agent-steps/s':>14} "
-        f"{'physics ms':>11} {'env/physics':>12} {'peak RSS MiB':>13} {'peak GPU MiB':>13}"
+        f"{'dynamics':<10} {'mode':<9} {'N':>7} {'compile s':>10} {'step ms':>9} {'steps/s':>9} "
+        f"{'agent-steps/s':>14} {'physics ms':>11} {'env/physics':>12} {'peak RSS MiB':>13} "
+        f"{'peak GPU MiB':>13}"
     )
     for dyn in args.dynamics:
-        for n in args.sizes:
-            if args.device.startswith("cuda"):
-                torch.cuda.reset_peak_memory_stats()
-            env = make_env(f"dynamics={dyn}", num_envs=n, scenarios=scenarios, device=args.device)
-            probe = time_steps(env, 3, args.device)
-            steps = max(10, int(args.seconds / probe))
-            step_s = time_steps(env, steps, args.device)
-            phys_s = time_physics(env, max(10, steps // 2), args.device)
-            print(
-                f"{dyn:<10} {n:>7} {step_s * 1e3:>9.3f} {1 / step_s:>9.0f} {n / step_s:>14,.0f} "
-                f"{phys_s * 1e3:>11.3f} {step_s / phys_s:>12.2f} {peak_rss_mib():>13.0f} "
-                f"{peak_gpu_mib(args.device):>13}"
-            )
+        for mode in args.modes:
+            for n in args.sizes:
+                if args.device.startswith("cuda"):
+                    torch.cuda.reset_peak_memory_stats()
+                env = make_env(
+                    f"dynamics={dyn}",
+                    f"env.compile_step={MODES[mode]}",
+                    num_envs=n,
+                    scenarios=scenarios,
+                    device=args.device,
+                )
+                warmup, probe = time_steps(env, 3, args.device)
+                steps = max(10, int(args.seconds / probe))
+                step_s = time_steps(env, steps, args.device)[1]
+                phys_s = time_physics(env, max(10, steps // 2), args.device)
+                compile_s = f"{warmup:.1f}" if mode == "compiled" else "-"
+                print(
+                    f"{dyn:<10} {mode:<9} {n:>7} {compile_s:>10} {step_s * 1e3:>9.3f} "
+                    f"{1 / step_s:>9.0f} {n / step_s:>14,.0f} {phys_s * 1e3:>11.3f} "
+                    f"{step_s / phys_s:>12.2f} {peak_rss_mib():>13.0f} "
+                    f"{peak_gpu_mib(args.device):>13}"
+                )
 
 
 if __name__ == "__main__":

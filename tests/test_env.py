@@ -210,6 +210,34 @@ def test_same_seed_same_rollout(scenarios, order):
     assert not torch.equal(a["scenario_index"], c["scenario_index"])
 
 
+@pytest.mark.slow
+def test_compiled_step_flies_like_the_eager_one(scenarios):
+    def run(compile_step):
+        env = make_env(
+            f"env.compile_step={compile_step}",
+            "env.time_limit=6",
+            "env.scenario_order=random",
+            scenarios=scenarios,
+            num_envs=8,
+        )
+        env.set_seed(3)
+        torch.manual_seed(0)  # random actions come from torch's global generator
+        return env, env.rollout(150, break_when_any_done=False)
+
+    eager_env, eager = run(False)
+    compiled_env, compiled = run(True)
+    assert compiled_env._advance is not compiled_env._advance_eager
+    assert eager_env._advance == eager_env._advance_eager
+    check_env_specs(compiled_env, seed=0)
+    assert eager["next", "done"].any()  # episodes ended and were reset along the way
+    for key in eager["next"].keys(True, True):
+        a, b = eager["next", key], compiled["next", key]
+        if a.is_floating_point():
+            torch.testing.assert_close(b, a, atol=1e-4, rtol=1e-5, msg=str(key))
+        else:
+            assert torch.equal(a, b), key
+
+
 def test_time_limit_truncates(scenarios):
     env = make_env("env.time_limit=1.0", scenarios=scenarios, num_envs=4)
     td = env.rollout(10, break_when_any_done=False)

