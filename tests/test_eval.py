@@ -326,3 +326,9 @@ def test_cli_bad_input_is_one_line(tmp_path):
         res.stderr.strip().splitlines()[-1]
         == f"error: run_dir: no run directory at {tmp_path / 'nowhere'}"
     )
+
+
+def test_bad_thread_count_is_refused(trained_run):
+    cfg = compose_config("evaluate", [f"run_dir={trained_run}", "threads=0"])
+    with pytest.raises(ConfigError, match=r"threads: must be a positive integer or null, got 0"):
+        evaluate_from_config(cfg)

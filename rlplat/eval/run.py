@@ -325,6 +325,10 @@ def evaluate_from_config(cfg: DictConfig) -> list[str]:
         "speed_ratio_bins": list(cfg.speed_ratio_bins),
         "plots": bool(cfg.plots),
     }
+    if cfg.threads is not None:
+        if not isinstance(cfg.threads, int) or cfg.threads < 1:
+            raise ConfigError(f"threads: must be a positive integer or null, got {cfg.threads}")
+        torch.set_num_threads(cfg.threads)
     policies = [cfg.policy]
     if cfg.compare:
         if cfg.out_dir is not None:
