@@ -1,4 +1,5 @@
 import csv
+import inspect
 import json
 import logging
 import math
@@ -332,3 +333,20 @@ def test_bad_thread_count_is_refused(trained_run):
     cfg = compose_config("evaluate", [f"run_dir={trained_run}", "threads=0"])
     with pytest.raises(ConfigError, match=r"threads: must be a positive integer or null, got 0"):
         evaluate_from_config(cfg)
+
+
+def test_evaluate_yaml_is_evaluate_run_with_its_defaults():
+    yaml = OmegaConf.load(ROOT / "conf" / "evaluate.yaml")
+    params = inspect.signature(evaluate_run).parameters
+    keys = set(yaml) - {"defaults", "hydra", "compare", "threads"}  # entry-point options
+    assert keys == set(params)
+    for key in keys - {"run_dir"}:
+        default = params[key].default
+        assert yaml[key] == (list(default) if isinstance(default, tuple) else default), key
+    cfg = compose_config("evaluate", ["run_dir=x"])
+    assert (cfg.policy, cfg.ckpt, cfg.split, cfg.strict_scenarios) == (
+        "checkpoint",
+        "best",
+        "test",
+        False,
+    )

@@ -159,7 +159,8 @@ def write_report(
 ) -> None:
     """Plots (if ``plots``) and ``report.md`` of one evaluation into ``out_dir``."""
     s = summary
-    who = s["name"] if s["policy"] == "checkpoint" else f"{s['policy']} (scripted baseline)"
+    learned = f"{s['drone']} ({s['name']} checkpoint)"
+    who = learned if s["policy"] == "checkpoint" else f"{s['policy']} (scripted baseline)"
     md = [
         f"# Evaluation: {who} on the {s['split']} split",
         "",

@@ -176,7 +176,8 @@ def evaluate_run(
     wall = time.perf_counter() - t0
     log.info("%s on %d %s scenarios in %.1f s", name, n, split, wall)
 
-    rows = episode_rows(results, scenarios, split, env.routes)
+    routes = env.routes.cpu()
+    rows = episode_rows(results, scenarios, split, routes)
     summary = {
         "policy": policy,
         "name": name,
@@ -197,7 +198,7 @@ def evaluate_run(
     atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
     from rlplat.eval.report import write_report
 
-    write_report(out_dir, summary, rows, results, env.routes, run_dir, trajectories, plots)
+    write_report(out_dir, summary, rows, results, routes, run_dir, trajectories, plots)
     log.info("capture rate %.3f on %s; results in %s", summary["capture_rate"], split, out_dir)
     return Evaluation(rows, summary, results, out_dir)
 
