@@ -17,7 +17,8 @@ def fake_sweep(root: Path, scores: dict[str, list[tuple[int, float, float]]]) ->
             run = root / str(job)
             (run / ".hydra").mkdir(parents=True)
             (run / "config.yaml").write_text(f"seed: {seed}\n")
-            overrides = [f"seed={seed}", *([variant] if variant != "default" else [])]
+            overrides = [f"seed={seed}", "train.max_minutes=1"]
+            overrides += [variant] if variant != "default" else []
             OmegaConf.save(OmegaConf.create(overrides), run / ".hydra" / "overrides.yaml")
             summary = {"seed": seed, "test_capture_rate": rate, "test_mean_return": ret}
             (run / "summary.json").write_text(json.dumps(summary))
@@ -37,6 +38,8 @@ def test_cli_aggregates_seeds_per_configuration(tmp_path):
     res = run_cli("-m", "rlplat.eval.aggregate", str(tmp_path), "--reps", "500")
     assert res.returncode == 0, res.stderr[-2000:]
     summary = json.loads((tmp_path / "aggregate" / "summary.json").read_text())
+    assert summary["common_overrides"] == ["train.max_minutes=1"]  # not a variant's name
+    assert list(summary["variants"]) == ["default", "drone=attacker_v1"]
     default = summary["variants"]["default"]["test_capture_rate"]
     assert default["iqm"] == pytest.approx(0.5)  # mean of the middle two seeds
     assert default["mean"] == pytest.approx(0.5)

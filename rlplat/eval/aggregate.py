@@ -1,8 +1,8 @@
 """Aggregate a seed sweep: per-seed test scores, IQM and stratified-bootstrap 95 % CIs.
 
 ``python -m rlplat.eval.aggregate SWEEP_DIR`` reads every training run under ``SWEEP_DIR``
-(e.g. ``runs/multirun/<time>`` of ``train.py -m seed=0,1,2``), groups the runs by their Hydra
-overrides other than ``seed`` (one group per configuration of the sweep), and writes
+(e.g. ``runs/multirun/<time>`` of ``train.py -m seed=0,1,2``), groups the runs by the Hydra
+overrides that set them apart other than ``seed`` (one group per configuration), and writes
 ``SWEEP_DIR/aggregate/seeds.{csv,md,png}`` and ``summary.json``.
 """
 
@@ -41,17 +41,17 @@ def find_runs(sweep_dir: Path) -> list[Path]:
     return sorted(found)
 
 
-def variant(run_dir: Path) -> str:
-    """The run's Hydra overrides other than ``seed`` (``.hydra/overrides.yaml``), or
-    ``default`` when there are none."""
+def overrides(run_dir: Path) -> list[str]:
+    """The run's Hydra overrides other than ``seed`` (``.hydra/overrides.yaml``)."""
     path = run_dir / ".hydra" / "overrides.yaml"
-    overrides = list(OmegaConf.load(path)) if path.is_file() else []
-    kept = [o for o in overrides if not o.split("=", 1)[0].lstrip("+~").startswith("seed")]
-    return " ".join(kept) or "default"
+    found = list(OmegaConf.load(path)) if path.is_file() else []
+    return [o for o in found if not o.split("=", 1)[0].lstrip("+~").startswith("seed")]
 
 
-def collect(sweep_dir: str | Path) -> dict[str, list[dict[str, Any]]]:
-    """Per variant, one record per run: ``seed``, ``run_dir`` and the :data:`METRICS`."""
+def collect(sweep_dir: str | Path) -> tuple[dict[str, list[dict[str, Any]]], list[str]]:
+    """Per variant, one record per run (``seed``, ``run_dir`` and the :data:`METRICS`), and the
+    overrides every run shares. A variant is named by the overrides that set its runs apart
+    (other than ``seed``); ``default`` when there are none."""
     sweep_dir = Path(sweep_dir)
     if not sweep_dir.is_dir():
         raise ConfigError(f"sweep_dir: no directory at {sweep_dir}")
@@ -61,6 +61,8 @@ def collect(sweep_dir: str | Path) -> dict[str, list[dict[str, Any]]]:
             f"sweep_dir: no finished training run under {sweep_dir} "
             "(a summary.json beside a config.yaml)"
         )
+    found = {run: overrides(run) for run in runs}
+    common = [o for o in found[runs[0]] if all(o in v for v in found.values())]
     groups: dict[str, list[dict[str, Any]]] = defaultdict(list)
     for run in runs:
         summary = json.loads((run / "summary.json").read_text())
@@ -68,8 +70,9 @@ def collect(sweep_dir: str | Path) -> dict[str, list[dict[str, Any]]]:
         if missing:
             raise ConfigError(f"{run / 'summary.json'}: missing {', '.join(missing)}")
         record = {"seed": summary["seed"], "run_dir": str(run.relative_to(sweep_dir))}
-        groups[variant(run)].append(record | {k: float(summary[k]) for k in METRICS})
-    return {k: sorted(v, key=lambda r: r["seed"]) for k, v in sorted(groups.items())}
+        name = " ".join(o for o in found[run] if o not in common) or "default"
+        groups[name].append(record | {k: float(summary[k]) for k in METRICS})
+    return {k: sorted(v, key=lambda r: r["seed"]) for k, v in sorted(groups.items())}, common
 
 
 def aggregate_scores(
@@ -151,7 +154,7 @@ def aggregate(sweep_dir: str | Path, reps: int = 2000, seed: int = 0) -> str:
     if not isinstance(reps, int) or reps < 1:
         raise ConfigError(f"reps: must be a positive integer, got {reps}")
     sweep_dir = Path(sweep_dir)
-    groups = collect(sweep_dir)
+    groups, common = collect(sweep_dir)
     stats = {name: aggregate_scores(records, reps, seed) for name, records in groups.items()}
     out = sweep_dir / "aggregate"
     buffer = io.StringIO()
@@ -164,8 +167,16 @@ def aggregate(sweep_dir: str | Path, reps: int = 2000, seed: int = 0) -> str:
     atomic_write_text(out / "seeds.csv", buffer.getvalue())
     table = markdown(groups, stats, reps)
     title = f"# Seeds of `{sweep_dir}`\n\n"
+    if common:
+        title += "Every run: " + " ".join(f"`{o}`" for o in common) + "\n\n"
     atomic_write_text(out / "seeds.md", title + table + "\n\n![seeds](seeds.png)\n")
-    summary = {"reps": reps, "bootstrap_seed": seed, "variants": stats, "runs": groups}
+    summary = {
+        "reps": reps,
+        "bootstrap_seed": seed,
+        "common_overrides": common,
+        "variants": stats,
+        "runs": groups,
+    }
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
     plot(groups, stats, out / "seeds.png")
     log.info("aggregated %d runs in %s", sum(map(len, groups.values())), out)
