@@ -67,7 +67,11 @@ def check_compatible(state: dict[str, Any], net: NetSpec, interface: dict[str, s
 
 def load_policy(path: str | Path, action_spec, device: torch.device | str = "cpu"):
     """The deterministic-capable actor saved in a checkpoint (``best.pt`` or ``last.pt``)."""
-    state = load_checkpoint(path)
+    return actor_from_state(load_checkpoint(path), action_spec, device)
+
+
+def actor_from_state(state: dict[str, Any], action_spec, device: torch.device | str = "cpu"):
+    """The actor of a loaded checkpoint (see :func:`load_checkpoint`)."""
     net = NetSpec(**{k: tuple(v) if isinstance(v, list) else v for k, v in state["net"].items()})
     actor = make_actor(net, action_spec, device)
     actor.load_state_dict(state["actor"])

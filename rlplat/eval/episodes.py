@@ -23,6 +23,14 @@ class EpisodeResults:
         length: (E,) int64, steps.
         time_to_capture: (E,) float32 s, NaN where there was no capture.
         term_sums: per reward term, (E,) float32 episode sum.
+        min_distance: (E,) float32 m, least attacker-defender distance at the start or at the
+            end of a step (a capture is decided on the closest approach during a step, so a
+            captured episode can show slightly more than the capture radius).
+        visible_fraction: (E,) float32, fraction of the episode's steps that ended with the
+            defender inside the attacker's vision ellipsoid.
+        positions: (E, T + 1, 2, 3) float32 m, both drones (attacker, defender) at the start
+            and after every step, T the longest episode; an episode that ended earlier repeats
+            its final positions. None unless ``evaluate(..., record=True)``.
     """
 
     scenario_index: torch.Tensor
@@ -32,6 +40,9 @@ class EpisodeResults:
     length: torch.Tensor
     time_to_capture: torch.Tensor
     term_sums: dict[str, torch.Tensor]
+    min_distance: torch.Tensor
+    visible_fraction: torch.Tensor
+    positions: torch.Tensor | None = None
 
     @property
     def capture_rate(self) -> float:
@@ -42,12 +53,15 @@ class EpisodeResults:
         return self.returns.mean().item()
 
     def summary(self) -> dict[str, float]:
-        """Scalars for a logger: capture rate, mean return and length, per-term means."""
+        """Scalars for a logger: capture rate, mean return and length, visibility, per-term
+        means."""
         out = {
             "capture_rate": self.capture_rate,
             "mean_return": self.mean_return,
             "mean_length": self.length.float().mean().item(),
             "ground_rate": self.grounded.float().mean().item(),
+            "visible_fraction": self.visible_fraction.mean().item(),
+            "mean_min_distance": self.min_distance.mean().item(),
         }
         if self.captured.any():
             out["mean_time_to_capture_s"] = self.time_to_capture[self.captured].mean().item()
@@ -56,12 +70,15 @@ class EpisodeResults:
 
 
 @torch.no_grad()
-def evaluate(env: PursuitEnv, policy, *, deterministic: bool = True) -> EpisodeResults:
+def evaluate(
+    env: PursuitEnv, policy, *, deterministic: bool = True, record: bool = False
+) -> EpisodeResults:
     """Fly every scenario of ``env``'s split once with ``policy``; no learning happens.
 
-    ``env`` must have one env per scenario and walk its split sequentially (see
-    :func:`make_eval_env`), so env ``i`` flies scenario ``i``. Each env runs until its first
-    episode ends; envs that finish early keep stepping but their steps are not counted.
+    ``env`` must have one env per scenario and walk its split sequentially
+    (``scenario_order="sequential"``), so env ``i`` flies scenario ``i``. Each env runs until
+    its first episode ends; envs that finish early keep stepping but their steps are not
+    counted. With ``record`` the drones' positions at every step are kept (``positions``).
     """
     n = env.batch_size[0]
     if n != len(env.scenarios) or env.sampler.order != "sequential":
@@ -79,6 +96,9 @@ def evaluate(env: PursuitEnv, policy, *, deterministic: bool = True) -> EpisodeR
     returns = torch.zeros(n, device=env.device)
     length = torch.zeros(n, dtype=torch.int64, device=env.device)
     terms = {k: torch.zeros(n, device=env.device) for k in env.reward_fn.weights}
+    min_distance = td["distance"].squeeze(-1).clone()
+    visible_steps = torch.zeros(n, device=env.device)
+    positions = [td["positions"]] if record else None
     with set_exploration_type(kind):
         while alive.any():
             td = env.step(policy(td))
@@ -88,6 +108,12 @@ def evaluate(env: PursuitEnv, policy, *, deterministic: bool = True) -> EpisodeR
             for k in terms:
                 terms[k] += nxt["reward_terms", k].squeeze(-1) * a
             length += alive.long()
+            d = nxt["distance"].squeeze(-1)
+            min_distance = torch.where(alive, min_distance.minimum(d), min_distance)
+            visible_steps += nxt["visible"].squeeze(-1) * a
+            if positions is not None:
+                keep = alive.view(n, 1, 1)
+                positions.append(torch.where(keep, nxt["positions"], positions[-1]))
             done = nxt["done"].squeeze(-1) & alive
             captured |= done & nxt["captured"].squeeze(-1)
             low = (nxt["positions"][..., 2] <= env.ground_altitude).any(-1)
@@ -103,4 +129,7 @@ def evaluate(env: PursuitEnv, policy, *, deterministic: bool = True) -> EpisodeR
         length=length.cpu(),
         time_to_capture=time_to_capture.float().cpu(),
         term_sums={k: v.cpu() for k, v in terms.items()},
+        min_distance=min_distance.cpu(),
+        visible_fraction=(visible_steps / length.clamp_min(1)).float().cpu(),
+        positions=None if positions is None else torch.stack(positions, 1).cpu(),
     )

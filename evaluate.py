@@ -1,0 +1,23 @@
+"""Evaluate a training run: ``python evaluate.py run_dir=DIR [policy=...] [ckpt=...]``.
+
+Rebuilds env and policy from the run directory and replays every scenario of the split; see
+conf/evaluate.yaml. ``compare=true`` also flies the classical baselines and writes the table.
+"""
+
+import hydra
+from omegaconf import DictConfig
+
+from rlplat.cli import exit_on_error
+
+
+@hydra.main(config_path="conf", config_name="evaluate", version_base="1.3")
+@exit_on_error
+def main(cfg: DictConfig) -> None:
+    from rlplat.eval.run import evaluate_from_config
+
+    for line in evaluate_from_config(cfg):
+        print(line)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,199 @@
+"""Aggregate a seed sweep: per-seed test scores, IQM and stratified-bootstrap 95 % CIs.
+
+``python -m rlplat.eval.aggregate SWEEP_DIR`` reads every training run under ``SWEEP_DIR``
+(e.g. ``runs/multirun/<time>`` of ``train.py -m seed=0,1,2``), groups the runs by the Hydra
+overrides that set them apart other than ``seed`` (one group per configuration), and writes
+``SWEEP_DIR/aggregate/seeds.{csv,md,png}`` and ``summary.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import logging
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from omegaconf import OmegaConf
+
+from rlplat.cli import exit_on_error
+from rlplat.errors import ConfigError
+from rlplat.eval.metrics import iqm, stratified_bootstrap_ci
+from rlplat.eval.report import pyplot, save_figure
+from rlplat.io import atomic_write_text
+
+log = logging.getLogger(__name__)
+
+#: What is aggregated: the best checkpoint's scores on the test split (training's summary.json).
+METRICS = {"test_capture_rate": "test capture rate", "test_mean_return": "test mean return"}
+
+
+def find_runs(sweep_dir: Path) -> list[Path]:
+    """Training run directories under ``sweep_dir`` (a ``summary.json`` beside a
+    ``config.yaml``), the sweep directory itself included."""
+    found = {
+        p.parent for p in sweep_dir.rglob("summary.json") if (p.parent / "config.yaml").is_file()
+    }
+    return sorted(found)
+
+
+def overrides(run_dir: Path) -> list[str]:
+    """The run's Hydra overrides other than ``seed`` (``.hydra/overrides.yaml``)."""
+    path = run_dir / ".hydra" / "overrides.yaml"
+    found = list(OmegaConf.load(path)) if path.is_file() else []
+    return [o for o in found if not o.split("=", 1)[0].lstrip("+~").startswith("seed")]
+
+
+def collect(sweep_dir: str | Path) -> tuple[dict[str, list[dict[str, Any]]], list[str]]:
+    """Per variant, one record per run (``seed``, ``run_dir`` and the :data:`METRICS`), and the
+    overrides every run shares. A variant is named by the overrides that set its runs apart
+    (other than ``seed``); ``default`` when there are none."""
+    sweep_dir = Path(sweep_dir)
+    if not sweep_dir.is_dir():
+        raise ConfigError(f"sweep_dir: no directory at {sweep_dir}")
+    runs = find_runs(sweep_dir)
+    if not runs:
+        raise ConfigError(
+            f"sweep_dir: no finished training run under {sweep_dir} "
+            "(a summary.json beside a config.yaml)"
+        )
+    found = {run: overrides(run) for run in runs}
+    common = [o for o in found[runs[0]] if all(o in v for v in found.values())]
+    groups: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    for run in runs:
+        summary = json.loads((run / "summary.json").read_text())
+        missing = [k for k in ("seed", *METRICS) if k not in summary]
+        if missing:
+            raise ConfigError(f"{run / 'summary.json'}: missing {', '.join(missing)}")
+        record = {"seed": summary["seed"], "run_dir": str(run.relative_to(sweep_dir))}
+        name = " ".join(o for o in found[run] if o not in common) or "default"
+        groups[name].append(record | {k: float(summary[k]) for k in METRICS})
+    return {k: sorted(v, key=lambda r: r["seed"]) for k, v in sorted(groups.items())}, common
+
+
+def aggregate_scores(
+    records: list[dict[str, Any]], reps: int = 2000, seed: int = 0
+) -> dict[str, dict[str, Any]]:
+    """Per metric: IQM and mean over seeds, each with its stratified-bootstrap 95 % CI.
+
+    The scores form a (seeds, 1) array: one task, the test split, so the stratified bootstrap
+    resamples seeds with replacement (fixed ``seed`` for the resampling).
+    """
+    out = {}
+    for key in METRICS:
+        scores = np.array([[r[key]] for r in records])
+        point, low, high = stratified_bootstrap_ci(scores, iqm, reps=reps, seed=seed)
+        mean, mean_low, mean_high = stratified_bootstrap_ci(scores, np.mean, reps=reps, seed=seed)
+        out[key] = {
+            "iqm": point,
+            "iqm_ci95": [low, high],
+            "mean": mean,
+            "mean_ci95": [mean_low, mean_high],
+            "std": float(scores.std(ddof=1)) if len(scores) > 1 else 0.0,
+        }
+    return out
+
+
+def markdown(groups: dict[str, list[dict]], stats: dict[str, dict], reps: int) -> str:
+    """The per-seed table and the aggregates, one section per variant."""
+    lines = [
+        f"IQM (mean of the middle 50 % of seeds) and mean, with stratified-bootstrap 95 % "
+        f"confidence intervals ({reps} resamples of the seeds).",
+    ]
+    for name, records in groups.items():
+        lines += ["", f"## {name} ({len(records)} seeds)", ""]
+        lines += ["| seed | run | test capture rate | test mean return |", "|---|---|---|---|"]
+        lines += [
+            f"| {r['seed']} | {r['run_dir']} | {r['test_capture_rate']:.3f} "
+            f"| {r['test_mean_return']:.2f} |"
+            for r in records
+        ]
+        s = stats[name]
+        for label, key in (("IQM", "iqm"), ("mean", "mean")):
+            cells = [
+                _with_ci(s[m][key], s[m][key + "_ci95"], d)
+                for m, d in (("test_capture_rate", 3), ("test_mean_return", 2))
+            ]
+            lines.append(f"| **{label}** [95 % CI] | | {cells[0]} | {cells[1]} |")
+    return "\n".join(lines)
+
+
+def _with_ci(value: float, ci: list[float], digits: int) -> str:
+    return f"{value:.{digits}f} [{ci[0]:.{digits}f}, {ci[1]:.{digits}f}]"
+
+
+def plot(groups: dict[str, list[dict]], stats: dict[str, dict], path: Path) -> None:
+    """Per metric, per variant: every seed's score, and the IQM with its 95 % CI."""
+    plt = pyplot()
+    names = list(groups)
+    fig, axes = plt.subplots(1, len(METRICS), figsize=(11, 1.2 + 0.7 * len(names)), squeeze=False)
+    for ax, (key, label) in zip(axes[0], METRICS.items(), strict=True):
+        for y, name in enumerate(names):
+            xs = [r[key] for r in groups[name]]
+            ax.scatter(xs, [y] * len(xs), color="grey", alpha=0.7, s=18, zorder=2,
+                       label="seed" if y == 0 else None)  # fmt: skip
+            s = stats[name][key]
+            err = [[max(0.0, s["iqm"] - s["iqm_ci95"][0])], [max(0.0, s["iqm_ci95"][1] - s["iqm"])]]
+            ax.errorbar([s["iqm"]], [y], xerr=err, fmt="D", color="tab:blue", capsize=4,
+                        zorder=3, label="IQM, 95 % CI" if y == 0 else None)  # fmt: skip
+        ax.set_yticks(range(len(names)), names)
+        ax.set_xlabel(label)
+        ax.set_ylim(-0.7, len(names) - 0.3)
+        ax.grid(axis="x", alpha=0.3)
+    axes[0][0].legend(fontsize=8, loc="best")
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def aggregate(sweep_dir: str | Path, reps: int = 2000, seed: int = 0) -> str:
+    """Aggregate the seeds of a sweep into ``<sweep_dir>/aggregate/``; returns the Markdown."""
+    if not isinstance(reps, int) or reps < 1:
+        raise ConfigError(f"reps: must be a positive integer, got {reps}")
+    sweep_dir = Path(sweep_dir)
+    groups, common = collect(sweep_dir)
+    stats = {name: aggregate_scores(records, reps, seed) for name, records in groups.items()}
+    out = sweep_dir / "aggregate"
+    buffer = io.StringIO()
+    writer = csv.DictWriter(
+        buffer, fieldnames=["variant", "seed", "run_dir", *METRICS], lineterminator="\n"
+    )
+    writer.writeheader()
+    for name, records in groups.items():
+        writer.writerows({"variant": name, **r} for r in records)
+    atomic_write_text(out / "seeds.csv", buffer.getvalue())
+    table = markdown(groups, stats, reps)
+    title = f"# Seeds of `{sweep_dir}`\n\n"
+    if common:
+        title += "Every run: " + " ".join(f"`{o}`" for o in common) + "\n\n"
+    atomic_write_text(out / "seeds.md", title + table + "\n\n![seeds](seeds.png)\n")
+    summary = {
+        "reps": reps,
+        "bootstrap_seed": seed,
+        "common_overrides": common,
+        "variants": stats,
+        "runs": groups,
+    }
+    atomic_write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    plot(groups, stats, out / "seeds.png")
+    log.info("aggregated %d runs in %s", sum(map(len, groups.values())), out)
+    return table
+
+
+@exit_on_error
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        prog="python -m rlplat.eval.aggregate", description=__doc__.splitlines()[0]
+    )
+    parser.add_argument("sweep_dir", help="a sweep directory, e.g. runs/multirun/<time>")
+    parser.add_argument("--reps", type=int, default=2000, help="bootstrap resamples (2000)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the resampling (0)")
+    args = parser.parse_args(argv)
+    print(aggregate(args.sweep_dir, args.reps, args.seed))
+
+
+if __name__ == "__main__":
+    main()

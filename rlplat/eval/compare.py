@@ -1,0 +1,179 @@
+"""Compare the policies evaluated on one split of a run: one table, one plot.
+
+``python -m rlplat.eval.compare RUN_DIR [--split test]`` reads every
+``RUN_DIR/eval/<split>-*/summary.json`` (written by ``evaluate.py``) and writes
+``RUN_DIR/eval/compare-<split>.md``, ``.csv`` and ``.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import logging
+from pathlib import Path
+from typing import Any
+
+from rlplat.cli import exit_on_error
+from rlplat.errors import ConfigError
+from rlplat.eval.baselines import BASELINES
+from rlplat.eval.report import pyplot, save_figure
+from rlplat.io import atomic_write_text
+from rlplat.scenarios import SPLITS
+
+log = logging.getLogger(__name__)
+
+COLUMNS = (
+    "policy",
+    "kind",
+    "scenarios",
+    "captured",
+    "capture_rate",
+    "ci95_low",
+    "ci95_high",
+    "mean_time_to_capture_s",
+    "median_time_to_capture_s",
+    "mean_return",
+    "mean_visible_fraction",
+    "mean_min_distance_m",
+)
+
+
+def _order(summary: dict[str, Any]) -> tuple[int, int, str]:
+    if summary["policy"] == "checkpoint":
+        return (0, 0 if summary["name"] == "best" else 1, summary["name"])
+    return (1, list(BASELINES).index(summary["policy"]), summary["name"])
+
+
+def load_summaries(run_dir: str | Path, split: str = "test") -> list[dict[str, Any]]:
+    """The evaluation summaries of ``split`` in a run: learned policies first, then baselines.
+
+    Refuses summaries flown on different scenario sets: their numbers do not compare.
+    """
+    run_dir = Path(run_dir)
+    if split not in SPLITS:
+        raise ConfigError(f"split: unknown '{split}'; valid: {', '.join(SPLITS)}")
+    if not run_dir.is_dir():
+        raise ConfigError(f"run_dir: no run directory at {run_dir}")
+    paths = sorted((run_dir / "eval").glob(f"{split}-*/summary.json"))
+    if not paths:
+        raise ConfigError(
+            f"compare: no evaluation of the {split} split in {run_dir / 'eval'}; "
+            f"run evaluate.py run_dir={run_dir} split={split} first"
+        )
+    summaries = sorted((json.loads(p.read_text()) for p in paths), key=_order)
+    digests = {s["scenario_digest"] for s in summaries}
+    if len(digests) > 1:
+        flown = ", ".join(f"{s['name']}: {s['scenario_digest'][:12]}" for s in summaries)
+        raise ConfigError(f"compare: the evaluations used different scenario sets ({flown})")
+    return summaries
+
+
+def table_rows(summaries: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row of :data:`COLUMNS` per evaluated policy."""
+    rows = []
+    for s in summaries:
+        learned = s["policy"] == "checkpoint"
+        rows.append(
+            {
+                "policy": f"{s['drone']} ({s['name']})" if learned else s["policy"],
+                "kind": "learned" if learned else "scripted",
+                "scenarios": s["scenarios"],
+                "captured": s["captured"],
+                "capture_rate": s["capture_rate"],
+                "ci95_low": s["capture_rate_ci95"][0],
+                "ci95_high": s["capture_rate_ci95"][1],
+                **{k: s[k] for k in COLUMNS[7:]},
+            }
+        )
+    return rows
+
+
+def markdown_table(rows: list[dict[str, Any]]) -> str:
+    """The comparison as a Markdown table."""
+
+    def num(v, digits=3):
+        return "–" if v is None else f"{v:.{digits}f}"
+
+    lines = [
+        "| policy | scenarios | capture rate [95 % CI] | mean / median time to capture [s] "
+        "| mean return | visible fraction | mean closest distance [m] |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['policy']} | {r['scenarios']} | {num(r['capture_rate'])} "
+            f"[{num(r['ci95_low'])}, {num(r['ci95_high'])}] "
+            f"| {num(r['mean_time_to_capture_s'], 1)} / {num(r['median_time_to_capture_s'], 1)} "
+            f"| {num(r['mean_return'], 2)} | {num(r['mean_visible_fraction'])} "
+            f"| {num(r['mean_min_distance_m'], 2)} |"
+        )
+    return "\n".join(lines)
+
+
+def plot_comparison(summaries: list[dict[str, Any]], path: Path) -> None:
+    """Capture rate against speed-ratio bin, one line per policy (95 % Wilson intervals)."""
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(7, 4))
+    labels = list(summaries[0]["by_speed_ratio"])
+    for j, s in enumerate(summaries):
+        groups = s["by_speed_ratio"]
+        present = [g for g in labels if g in groups]
+        xs = [labels.index(g) + 0.06 * (j - (len(summaries) - 1) / 2) for g in present]
+        rate = [groups[g]["capture_rate"] for g in present]
+        ci = [groups[g]["capture_rate_ci95"] for g in present]
+        err = [[max(0.0, r - c[0]) for r, c in zip(rate, ci, strict=True)],
+               [max(0.0, c[1] - r) for r, c in zip(rate, ci, strict=True)]]  # fmt: skip
+        name = s["name"] if s["policy"] == "checkpoint" else s["policy"]
+        ax.errorbar(xs, rate, yerr=err, marker="o", capsize=3,
+                    label=f"{name} ({s['capture_rate']:.3f} overall)")  # fmt: skip
+    ax.set_xticks(range(len(labels)), labels)
+    ax.set_xlabel("speed ratio (attacker / defender maximum speed)")
+    ax.set_ylabel("capture rate")
+    ax.set_ylim(-0.02, 1.05)
+    ax.set_title(f"{summaries[0]['split']} split, {summaries[0]['scenarios']} scenarios")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def compare(run_dir: str | Path, split: str = "test") -> str:
+    """Write ``eval/compare-<split>.{md,csv,png}`` for a run; returns the Markdown table."""
+    run_dir = Path(run_dir)
+    summaries = load_summaries(run_dir, split)
+    rows = table_rows(summaries)
+    table = markdown_table(rows)
+    out = run_dir / "eval"
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=COLUMNS, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_text(out / f"compare-{split}.csv", buffer.getvalue())
+    plot_comparison(summaries, out / f"compare-{split}.png")
+    s = summaries[0]
+    header = (
+        f"# Policies on the {split} split of `{run_dir}`\n\n"
+        f"{s['scenarios']} scenarios, digest `{s['scenario_digest'][:12]}`; every policy flies "
+        "each scenario once, deterministically.\n\n"
+    )
+    figure = f"\n\n![capture rate against speed ratio](compare-{split}.png)\n"
+    atomic_write_text(out / f"compare-{split}.md", header + table + figure)
+    log.info("comparison of %d policies in %s", len(rows), out / f"compare-{split}.md")
+    return table
+
+
+@exit_on_error
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        prog="python -m rlplat.eval.compare", description=__doc__.splitlines()[0]
+    )
+    parser.add_argument("run_dir", help="a training run directory with eval/<split>-*/ results")
+    parser.add_argument("--split", default="test", help="test | val | train (default: test)")
+    args = parser.parse_args(argv)
+    print(compare(args.run_dir, args.split))
+
+
+if __name__ == "__main__":
+    main()

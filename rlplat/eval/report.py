@@ -1,0 +1,227 @@
+"""What a reviewer reads: PNG plots and ``report.md`` of one evaluation."""
+
+from __future__ import annotations
+
+import io
+import logging
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from rlplat.agents.metrics import plot_learning_curve
+from rlplat.eval.episodes import EpisodeResults
+from rlplat.io import atomic_write_bytes, atomic_write_text
+
+log = logging.getLogger(__name__)
+
+
+def pyplot():
+    """matplotlib's pyplot on the non-interactive Agg backend."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(fig, path: Path) -> None:
+    """Write ``fig`` as a PNG atomically and close it."""
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=100)
+    pyplot().close(fig)
+    atomic_write_bytes(path, buffer.getvalue())
+
+
+def read_scalars(run_dir: Path) -> dict[str, list[tuple[int, float]]]:
+    """A run's logged scalars, ``metrics/scalars/<ns>/<name>.csv`` (``step,value`` lines)."""
+    root = run_dir / "metrics" / "scalars"
+    history = {}
+    for path in sorted(root.rglob("*.csv")):
+        name = path.relative_to(root).with_suffix("").as_posix()
+        points = [line.split(",") for line in path.read_text().splitlines() if line]
+        history[name] = [(int(float(s)), float(v)) for s, v in points]
+    return history
+
+
+def pick_episodes(rows: Sequence[Mapping[str, Any]], k: int) -> list[tuple[int, str]]:
+    """Up to ``k`` episodes worth drawing, as (row, label): half the fastest captures, the rest
+    the worst outcomes (misses with the largest closest distance, then the slowest captures)."""
+    caught = sorted((r["time_to_capture_s"], i) for i, r in enumerate(rows) if r["captured"])
+    missed = sorted((-r["min_distance_m"], i) for i, r in enumerate(rows) if not r["captured"])
+    best = [i for _, i in caught[: (k + 1) // 2]]
+    worst = [i for _, i in missed] + [i for _, i in reversed(caught)]
+    worst = [i for i in worst if i not in best][: k - len(best)]
+    picked = [(i, "best") for i in best] + [(i, "worst") for i in worst]
+    return picked
+
+
+def plot_trajectories(
+    rows: Sequence[Mapping[str, Any]],
+    positions: torch.Tensor,
+    routes: torch.Tensor,
+    picked: list[tuple[int, str]],
+    path: Path,
+) -> None:
+    """3D paths of the picked episodes: attacker, defender, nearby route setpoints, capture."""
+    plt = pyplot()
+    cols = min(3, len(picked))
+    nrows = math.ceil(len(picked) / cols)
+    fig = plt.figure(figsize=(5.2 * cols, 4.6 * nrows))
+    for j, (e, label) in enumerate(picked):
+        r = rows[e]
+        p = positions[e, : r["steps"] + 1].numpy()
+        ax = fig.add_subplot(nrows, cols, j + 1, projection="3d")
+        ax.plot(*p[:, 0].T, color="tab:blue", label="attacker")
+        ax.plot(*p[:, 1].T, color="tab:red", label="defender")
+        ax.scatter(*p[0, 0], color="tab:blue", marker="o", s=20)
+        ax.scatter(*p[0, 1], color="tab:red", marker="o", s=20)
+        lo, hi = p.reshape(-1, 3).min(0) - 10, p.reshape(-1, 3).max(0) + 10
+        sp = routes[r["route"]].numpy()
+        near = sp[((sp >= lo) & (sp <= hi)).all(1)]
+        if len(near):
+            ax.scatter(*near.T, color="grey", marker="x", s=18, label="route setpoints")
+        if r["captured"]:
+            ax.scatter(*p[-1, 0], color="gold", edgecolor="k", marker="*", s=160, label="capture")
+            outcome = f"captured at {r['time_to_capture_s']:.1f} s"
+        else:
+            outcome = f"missed, closest {r['min_distance_m']:.1f} m"
+        ax.set_title(
+            f"{label}: {r['scenario_id']}\n{outcome}, speed ratio {r['speed_ratio']:.2f}",
+            fontsize=9,
+        )
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        ax.set_zlabel("z [m]")
+        if j == 0:
+            ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def plot_groups(groups: Mapping[str, Mapping[str, Any]], xlabel: str, title: str, path: Path):
+    """Capture rate per group with its 95 % Wilson interval, and the group sizes."""
+    plt = pyplot()
+    names = list(groups)
+    rate = [groups[g]["capture_rate"] for g in names]
+    low = [max(0.0, rate[i] - groups[g]["capture_rate_ci95"][0]) for i, g in enumerate(names)]
+    high = [max(0.0, groups[g]["capture_rate_ci95"][1] - rate[i]) for i, g in enumerate(names)]
+    fig, ax = plt.subplots(figsize=(max(4.5, 1.1 * len(names) + 2), 3.6))
+    ax.bar(range(len(names)), rate, yerr=[low, high], capsize=4, color="tab:blue", alpha=0.8)
+    ax.set_xticks(range(len(names)), [f"{g}\nn={groups[g]['n']}" for g in names])
+    ax.set_ylim(0, 1.05)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("capture rate (95 % Wilson CI)")
+    ax.set_title(title, fontsize=10)
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    save_figure(fig, path)
+
+
+def _fmt(value: Any, digits: int = 3) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "–"
+    if isinstance(value, float):
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+def outcome_table(groups: Mapping[str, Mapping[str, Any]], first: str) -> list[str]:
+    """Markdown table of :func:`rlplat.eval.metrics.outcome_stats` rows, one per group."""
+    lines = [
+        f"| {first} | n | captured | capture rate | 95 % CI | mean / median time to capture [s] "
+        "| mean return | visible fraction | mean closest distance [m] |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, s in groups.items():
+        lo, hi = s["capture_rate_ci95"]
+        times = f"{_fmt(s['mean_time_to_capture_s'], 1)} / {_fmt(s['median_time_to_capture_s'], 1)}"
+        lines.append(
+            f"| {name} | {s['n']} | {s['captured']} | {_fmt(s['capture_rate'])} "
+            f"| [{_fmt(lo)}, {_fmt(hi)}] | {times} | {_fmt(s['mean_return'], 2)} "
+            f"| {_fmt(s['mean_visible_fraction'])} | {_fmt(s['mean_min_distance_m'], 2)} |"
+        )
+    return lines
+
+
+def write_report(
+    out_dir: Path,
+    summary: Mapping[str, Any],
+    rows: Sequence[Mapping[str, Any]],
+    results: EpisodeResults,
+    routes: torch.Tensor,
+    run_dir: Path,
+    trajectories: int,
+    plots: bool,
+) -> None:
+    """Plots (if ``plots``) and ``report.md`` of one evaluation into ``out_dir``."""
+    s = summary
+    learned = f"{s['drone']} ({s['name']} checkpoint)"
+    who = learned if s["policy"] == "checkpoint" else f"{s['policy']} (scripted baseline)"
+    md = [
+        f"# Evaluation: {who} on the {s['split']} split",
+        "",
+        f"- run: `{s['run_dir']}` (drone `{s['drone']}`, seed {s['seed']})",
+        f"- policy: `{s['policy']}`"
+        + (f", checkpoint `{s['checkpoint']}`" if s["checkpoint"] else ""),
+        f"- scenarios: {s['scenarios']} from `{s['scenario_dir']}`, "
+        f"digest `{s['scenario_digest'][:12]}`"
+        + ("" if s["scenario_digest_matches"] else " (**not the set the run trained with**)"),
+        "- every episode flown once, deterministically: `episodes.csv` has one row per scenario "
+        "(its parameters and its outcome)",
+        "",
+        "## Outcome",
+        "",
+        *outcome_table({"all scenarios": s}, "episodes"),
+        "",
+        f"Episodes ended on the ground: {_fmt(s['ground_rate'])}. Mean steps: "
+        f"{_fmt(s['mean_steps'], 1)}. Mean episode sum of each reward term: "
+        + ", ".join(f"{k} {v:.2f}" for k, v in s["reward_terms"].items())
+        + ".",
+        "",
+    ]
+    for key, title, first in (
+        ("by_strategy", "By defender strategy", "strategy"),
+        ("by_route", "By route", "route"),
+        ("by_speed_ratio", "By speed ratio (attacker / defender maximum speed)", "ratio"),
+    ):
+        md += [f"## {title}", "", *outcome_table(s[key], first), ""]
+    picked = pick_episodes(rows, trajectories)
+    if plots:
+        md += ["## Plots", ""]
+        history = read_scalars(run_dir)
+        if history:
+            plot_learning_curve(history, out_dir / "learning_curve.png")
+            md += ["Learning curves of the run (validation every few frames):", ""]
+            md += ["![learning curves](learning_curve.png)", ""]
+        plot_groups(s["by_speed_ratio"], "speed ratio", "Capture rate against speed ratio",
+                    out_dir / "capture_vs_speed_ratio.png")  # fmt: skip
+        plot_groups(s["by_route"], "route", "Capture rate per route",
+                    out_dir / "capture_by_route.png")  # fmt: skip
+        md += ["![capture rate against speed ratio](capture_vs_speed_ratio.png)", ""]
+        md += ["![capture rate per route](capture_by_route.png)", ""]
+        if picked and results.positions is not None:
+            plot_trajectories(rows, results.positions, routes, picked, out_dir / "trajectories.png")
+            md += ["Chosen episodes in 3D (best captures and worst outcomes):", ""]
+            md += ["![trajectories](trajectories.png)", ""]
+    if picked:
+        md += [
+            "## Chosen episodes",
+            "",
+            "| | scenario | route | speed ratio | captured | time to capture [s] "
+            "| closest distance [m] | return |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for e, label in picked:
+            r = rows[e]
+            md.append(
+                f"| {label} | {r['scenario_id']} | {r['route']} ({r['route_direction']}) "
+                f"| {r['speed_ratio']:.2f} | {'yes' if r['captured'] else 'no'} "
+                f"| {_fmt(r['time_to_capture_s'], 1)} | {r['min_distance_m']:.2f} "
+                f"| {r['return']:.2f} |"
+            )
+        md.append("")
+    atomic_write_text(out_dir / "report.md", "\n".join(md))

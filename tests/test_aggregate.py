@@ -1,0 +1,61 @@
+import csv
+import json
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from rlplat.errors import ConfigError
+from tests.test_eval import run_cli
+
+
+def fake_sweep(root: Path, scores: dict[str, list[tuple[int, float, float]]]) -> None:
+    """Run directories as `train.py -m` leaves them: config.yaml, summary.json, overrides."""
+    job = 0
+    for variant, runs in scores.items():
+        for seed, rate, ret in runs:
+            run = root / str(job)
+            (run / ".hydra").mkdir(parents=True)
+            (run / "config.yaml").write_text(f"seed: {seed}\n")
+            overrides = [f"seed={seed}", "train.max_minutes=1"]
+            overrides += [variant] if variant != "default" else []
+            OmegaConf.save(OmegaConf.create(overrides), run / ".hydra" / "overrides.yaml")
+            summary = {"seed": seed, "test_capture_rate": rate, "test_mean_return": ret}
+            (run / "summary.json").write_text(json.dumps(summary))
+            job += 1
+
+
+def test_cli_aggregates_seeds_per_configuration(tmp_path):
+    fake_sweep(
+        tmp_path,
+        {
+            "default": [(0, 0.2, -50.0), (1, 0.4, -40.0), (2, 0.6, -30.0), (3, 0.8, -20.0)],
+            "drone=attacker_v1": [(0, 0.1, -90.0), (1, 0.3, -80.0)],
+        },
+    )
+    (tmp_path / "0" / "eval" / "test-best").mkdir(parents=True)  # evaluations are not runs
+    (tmp_path / "0" / "eval" / "test-best" / "summary.json").write_text("{}")
+    res = run_cli("-m", "rlplat.eval.aggregate", str(tmp_path), "--reps", "500")
+    assert res.returncode == 0, res.stderr[-2000:]
+    summary = json.loads((tmp_path / "aggregate" / "summary.json").read_text())
+    assert summary["common_overrides"] == ["train.max_minutes=1"]  # not a variant's name
+    assert list(summary["variants"]) == ["default", "drone=attacker_v1"]
+    default = summary["variants"]["default"]["test_capture_rate"]
+    assert default["iqm"] == pytest.approx(0.5)  # mean of the middle two seeds
+    assert default["mean"] == pytest.approx(0.5)
+    assert 0.2 <= default["iqm_ci95"][0] < 0.5 < default["iqm_ci95"][1] <= 0.8
+    v1 = summary["variants"]["drone=attacker_v1"]["test_mean_return"]
+    assert v1["iqm"] == pytest.approx(-85.0) and v1["mean_ci95"] == pytest.approx([-90, -80])
+    with open(tmp_path / "aggregate" / "seeds.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["variant"], r["seed"]) for r in rows][:2] == [("default", "0"), ("default", "1")]
+    assert len(rows) == 6
+    assert "| **IQM** [95 % CI] | | 0.500 [" in res.stdout
+    assert (tmp_path / "aggregate" / "seeds.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_aggregate_of_nothing_is_a_clear_error(tmp_path):
+    from rlplat.eval.aggregate import aggregate
+
+    with pytest.raises(ConfigError, match=r"sweep_dir: no finished training run under"):
+        aggregate(tmp_path)

@@ -1,0 +1,352 @@
+import csv
+import inspect
+import json
+import logging
+import math
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+from tensordict import TensorDict
+
+from rlplat.config import compose_config
+from rlplat.envs.factory import build_env
+from rlplat.errors import ConfigError
+from rlplat.eval import evaluate_from_config, evaluate_run
+from rlplat.eval.baselines import (
+    PurePursuitPolicy,
+    SetpointFollowerPolicy,
+    make_baseline,
+)
+from rlplat.eval.episodes import evaluate
+from rlplat.eval.metrics import wilson_interval
+from rlplat.eval.run import episode_rows, summarize
+from rlplat.scenarios import ScenarioSet, write_scenario_set
+from tests.conftest import spec_from
+from tests.test_env import SIZES, scenarios  # noqa: F401  (module-scoped fixture)
+from tests.test_train import TINY
+
+ROOT = Path(__file__).resolve().parent.parent
+
+# Dynamics without lag, acceleration limit or drag: a drone flies at its command at once.
+IDEAL = (
+    "dynamics.tau_xy=1e-4",
+    "dynamics.tau_z=1e-4",
+    "dynamics.a_xy_max=1e6",
+    "dynamics.a_up_max=1e6",
+    "dynamics.a_down_max=1e6",
+    "dynamics.drag_xy=0",
+    "dynamics.drag_z=0",
+)
+
+
+def run_cli(*args, timeout=300):
+    return subprocess.run(
+        [sys.executable, *args],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        env={**os.environ},
+        timeout=timeout,
+    )
+
+
+# Hand-made scenarios with a known outcome ----------------------------------------------
+
+
+def hovering_defender_set(tmp_path, attacker_x: list[float], attacker_speed: float) -> ScenarioSet:
+    """Defenders hovering at (0, 0, 10): a route of 1000 setpoints at their start, so the route
+    lasts 1000 steps and the command is zero. Attackers at (x, 0, 10)."""
+    n = len(attacker_x)
+    split = TensorDict(
+        {
+            "defender_start": torch.tensor([[0.0, 0.0, 10.0]] * n),
+            "attacker_start": torch.tensor([[x, 0.0, 10.0] for x in attacker_x]),
+            "route": torch.zeros(n, dtype=torch.int64),
+            "defender_strategy": torch.zeros(n, dtype=torch.int64),
+            "defender_max_speed": torch.full((n,), 1.0),
+            "attacker_max_speed": torch.full((n,), attacker_speed),
+        },
+        batch_size=[n],
+    )
+    ids = {s: [f"{s}-{i}" for i in range(n)] for s in ("train", "val", "test")}
+    routes = torch.tensor([[[0.0, 0.0, 10.0]] * 1000])
+    splits = {s: split.clone() for s in ids}
+    return ScenarioSet(tmp_path, {}, None, ids, splits, routes)
+
+
+def test_hovering_defender_is_captured_at_the_computed_time(tmp_path):
+    v, dt, physics_dt, radius = 2.0, 0.1, 0.05, 1.2
+    d0 = [10.1, 60.1]
+    sset = hovering_defender_set(tmp_path, [-x for x in d0], v)
+    cfg = compose_config("train", [*IDEAL, "env.time_limit=10"])
+    env = build_env(cfg, scenarios=sset, split="test", num_envs=2, scenario_order="sequential")
+    results = evaluate(env, PurePursuitPolicy(env), record=True)
+
+    # The attacker flies at v from the first sub-step on (its start averages 0 and v), so after
+    # k steps it is d0 - v dt k + v physics_dt / 2 away.
+    def distance(x0, k):
+        return x0 - v * dt * k + v * physics_dt / 2
+
+    k_capture = math.ceil((d0[0] + v * physics_dt / 2 - radius) / (v * dt))
+    assert k_capture == 45
+    assert results.captured.tolist() == [True, False]
+    assert results.length.tolist() == [k_capture, 100]
+    assert results.time_to_capture[0].item() == pytest.approx(k_capture * dt)
+    assert results.min_distance.tolist() == pytest.approx(
+        [distance(d0[0], k_capture), distance(d0[1], 100)], abs=1e-3
+    )
+    # The far attacker sees the defender once within the 48 m semi-axis.
+    far = np.array([distance(d0[1], k) for k in range(1, 101)])
+    assert results.visible_fraction.tolist() == pytest.approx([1.0, np.mean(far <= 48.0)])
+    assert results.visible_fraction[1].item() == pytest.approx(0.40)
+    near = np.array([distance(d0[0], k) for k in range(1, k_capture)])
+    in_view = -2 * (near / 60) ** 2 - 0.1
+    far_reward = np.where(far <= 48.0, -2 * (far / 60) ** 2 - 0.1, -1.0)
+    assert results.returns.tolist() == pytest.approx([10 + in_view.sum(), far_reward.sum()], 1e-3)
+    assert results.term_sums["capture"].tolist() == [10.0, 0.0]
+    # Recorded paths: the starts, then frozen once an episode has ended.
+    pos = results.positions
+    assert pos.shape == (2, 101, 2, 3)
+    assert pos[:, 0, 0, 0].tolist() == pytest.approx([-d0[0], -d0[1]])
+    assert torch.equal(pos[0, k_capture:], pos[0, k_capture].expand(101 - k_capture, 2, 3))
+    assert torch.allclose(pos[:, :, 1], torch.tensor([0.0, 0.0, 10.0]))  # hovering
+
+    # The evaluator's table and summary of the same episodes.
+    rows = episode_rows(results, sset, "test", env.routes)
+    assert [r["scenario_id"] for r in rows] == ["test-0", "test-1"]
+    assert rows[0]["time_to_capture_s"] == pytest.approx(4.5) and rows[1]["captured"] is False
+    assert rows[0]["speed_ratio"] == 2.0 and rows[0]["route_direction"] == "+X"
+    summary = summarize(rows, list(env.reward_fn.weights), [0.5, 1.0, 2.5])
+    assert summary["capture_rate"] == 0.5
+    assert summary["capture_rate_ci95"] == pytest.approx(wilson_interval(1, 2))
+    assert summary["mean_time_to_capture_s"] == pytest.approx(4.5)
+    assert list(summary["by_speed_ratio"]) == ["1-2.5"]
+
+
+def test_setpoint_follower_flies_the_defender_like_the_scripted_one(scenarios):  # noqa: F811
+    """Attacker learns + pure pursuit policy == defender learns + setpoint-follower policy:
+    both fly pure pursuit against the route follower."""
+
+    def fly(learner, policy):
+        cfg = compose_config("train", [f"drone.learner={learner}", "env.time_limit=20"])
+        env = build_env(cfg, scenarios=scenarios, split="test", num_envs=16)
+        return evaluate(env, policy(env))
+
+    a = fly("attacker", PurePursuitPolicy)
+    d = fly("defender", SetpointFollowerPolicy)
+    assert a.captured.any() and torch.equal(a.captured, d.captured)
+    assert torch.allclose(a.min_distance, d.min_distance, atol=1e-3)
+    assert torch.equal(a.length, d.length)
+
+
+def test_baseline_registry_errors(scenarios):  # noqa: F811
+    cfg = compose_config("train", [])
+    env = build_env(cfg, scenarios=scenarios, split="test", num_envs=16)
+    with pytest.raises(ConfigError, match=r"policy: unknown baseline 'lqr'; valid: pure_pursuit"):
+        make_baseline("lqr", env)
+    with pytest.raises(
+        ConfigError,
+        match=r"policy: setpoint_follower flies the defender, this run's learner is the "
+        r"attacker; valid: pure_pursuit, proportional_navigation$",
+    ):
+        make_baseline("setpoint_follower", env)
+
+
+# A trained run, through the CLI ----------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def trained_run(scenarios, tmp_path_factory):  # noqa: F811
+    run = tmp_path_factory.mktemp("run")
+    res = run_cli(
+        "train.py", *TINY, "env.time_limit=20", f"scenarios_dir={scenarios.path}",
+        f"hydra.run.dir={run}",
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-2000:]
+    return run
+
+
+def read_episodes(path: Path) -> list[dict[str, str]]:
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.mark.slow
+def test_cli_train_evaluate_compare_round_trip(trained_run, scenarios):  # noqa: F811
+    run = trained_run
+    policies = "checkpoint,pure_pursuit,proportional_navigation"
+    res = run_cli("evaluate.py", "-m", f"run_dir={run}", f"policy={policies}")
+    assert res.returncode == 0, res.stderr[-2000:]
+    trained = json.loads((run / "summary.json").read_text())
+    for name in ("best", "pure_pursuit", "proportional_navigation"):
+        out = run / "eval" / f"test-{name}"
+        assert f"report {out / 'report.md'}" in res.stdout
+        rows = read_episodes(out / "episodes.csv")
+        s = json.loads((out / "summary.json").read_text())
+        assert [r["scenario_id"] for r in rows] == scenarios.ids["test"] and s["scenarios"] == 16
+        # The summary is what the table implies.
+        captured = np.array([r["captured"] == "1" for r in rows])
+        times = np.array([float(r["time_to_capture_s"]) for r in rows if r["captured"] == "1"])
+        assert s["captured"] == captured.sum() and s["capture_rate"] == captured.mean()
+        assert s["capture_rate_ci95"] == pytest.approx(wilson_interval(captured.sum(), 16))
+        returns = np.array([float(r["return"]) for r in rows])
+        terms = sum(np.array([float(r[f"reward_{k}"]) for r in rows]) for k in s["reward_terms"])
+        assert returns == pytest.approx(terms, abs=1e-3)
+        assert s["mean_return"] == pytest.approx(returns.mean(), rel=1e-5)
+        if len(times):
+            assert s["mean_time_to_capture_s"] == pytest.approx(times.mean(), rel=1e-5)
+            assert s["median_time_to_capture_s"] == pytest.approx(np.median(times), rel=1e-5)
+        visible = np.array([float(r["visible_fraction"]) for r in rows])
+        assert s["mean_visible_fraction"] == pytest.approx(visible.mean(), rel=1e-5)
+        for key in ("by_route", "by_speed_ratio", "by_strategy"):
+            assert sum(g["n"] for g in s[key].values()) == 16
+            assert sum(g["captured"] for g in s[key].values()) == captured.sum()
+        assert s["scenario_digest"] == trained["scenario_digest"] and s["scenario_digest_matches"]
+        report = (out / "report.md").read_text()
+        for png in ("learning_curve", "capture_vs_speed_ratio", "capture_by_route", "trajectories"):
+            assert (out / f"{png}.png").read_bytes()[:4] == b"\x89PNG", png
+            assert f"({png}.png)" in report
+    # The evaluator replays what training's own test of the best checkpoint flew.
+    best = json.loads((run / "eval" / "test-best" / "summary.json").read_text())
+    assert best["capture_rate"] == pytest.approx(trained["test_capture_rate"])
+    assert best["mean_return"] == pytest.approx(trained["test_mean_return"], rel=1e-5)
+
+    res = run_cli("-m", "rlplat.eval.compare", str(run))
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert [line.split(" | ")[0] for line in res.stdout.splitlines()[2:]] == [
+        "| attacker_v3 (best)",
+        "| pure_pursuit",
+        "| proportional_navigation",
+    ]
+    with open(run / "eval" / "compare-test.csv") as f:
+        table = list(csv.DictReader(f))
+    rates = [json.loads((run / "eval" / f"test-{n}" / "summary.json").read_text())["capture_rate"]
+             for n in ("best", "pure_pursuit", "proportional_navigation")]  # fmt: skip
+    assert [float(r["capture_rate"]) for r in table] == pytest.approx(rates)
+    assert (run / "eval" / "compare-test.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_compare_mode_flies_every_baseline_in_one_command(trained_run):
+    cfg = compose_config(
+        "evaluate", [f"run_dir={trained_run}", "split=val", "compare=true", "plots=false"]
+    )
+    lines = evaluate_from_config(cfg)
+    assert [line.split(":")[0] for line in lines[:3]] == [
+        "best",
+        "pure_pursuit",
+        "proportional_navigation",
+    ]
+    assert "| pure_pursuit | 16 |" in lines[3]
+    assert (trained_run / "eval" / "compare-val.md").read_text().count("\n| ") == 4
+    assert not list((trained_run / "eval" / "val-best").glob("*.png"))  # plots=false
+
+
+def test_last_checkpoint_and_a_path(trained_run):
+    last = evaluate_run(trained_run, ckpt="last", split="val", plots=False, trajectories=0)
+    assert last.out_dir == trained_run / "eval" / "val-last"
+    path = trained_run / "checkpoints" / "last.pt"
+    other = tmp = trained_run / "elsewhere"
+    tmp.mkdir(exist_ok=True)
+    again = evaluate_run(trained_run, ckpt=str(path), split="val", out_dir=other, plots=False)
+    assert again.summary["name"] == "last" and again.summary["checkpoint"] == str(path)
+    assert torch.equal(last.results.returns, again.results.returns)  # deterministic replay
+
+
+# Bad input -------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"ckpt": "middle"}, r"ckpt: no checkpoint at middle \(best or last, or the path of a"),
+        (
+            {"policy": "lqr"},
+            r"policy: unknown 'lqr'; valid: checkpoint, pure_pursuit, proportional_navigation",
+        ),
+        ({"split": "holdout"}, r"split: unknown 'holdout'; valid: train, val, test"),
+        ({"trajectories": -1}, r"trajectories: must be an integer >= 0, got -1"),
+        ({"speed_ratio_bins": [2.0, 1.0]}, r"speed_ratio_bins: must be increasing and > 0"),
+        ({"policy": "setpoint_follower"}, r"policy: setpoint_follower flies the defender"),
+    ],
+)
+def test_bad_arguments_are_refused_before_any_work(trained_run, kwargs, message):
+    with pytest.raises(ConfigError, match=message):
+        evaluate_run(trained_run, out_dir=trained_run / "bad", **{"split": "val", **kwargs})
+    assert not (trained_run / "bad").exists()
+
+
+def test_missing_run_directory(tmp_path):
+    with pytest.raises(ConfigError, match=r"run_dir: no run directory at .*nowhere"):
+        evaluate_run(tmp_path / "nowhere")
+    with pytest.raises(ConfigError, match=r"has no config.yaml \(not a training run directory\)"):
+        evaluate_run(tmp_path)
+
+
+def test_checkpoint_that_does_not_fit_the_drone_config(trained_run, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(trained_run, run, ignore=shutil.ignore_patterns("eval"))
+    cfg = OmegaConf.load(run / "config.yaml")
+    cfg.observation.name = "absolute"  # R^12, the checkpoint was trained on R^9
+    OmegaConf.save(cfg, run / "config.yaml")
+    with pytest.raises(
+        ConfigError,
+        match=r"ckpt: .*best.pt has obs_dim=9, the run's drone config \(observation=absolute, "
+        r"action=velocity\) gives obs_dim=12",
+    ):
+        evaluate_run(run)
+    assert not (run / "eval").exists()
+
+
+def test_another_scenario_set_warns_or_is_refused(trained_run, tmp_path, caplog):
+    other = tmp_path / "other"
+    write_scenario_set(spec_from(*SIZES, "scenario.seed=5"), other)
+    with caplog.at_level(logging.WARNING, logger="rlplat.eval.run"):
+        ev = evaluate_run(trained_run, split="val", scenarios_dir=other, out_dir=tmp_path / "w",
+                          plots=False)  # fmt: skip
+    assert "the run trained with" in caplog.text and "evaluating anyway" in caplog.text
+    assert ev.summary["scenario_digest_matches"] is False
+    with pytest.raises(ConfigError, match=r"scenarios: the set at .*other has digest .* the run "
+                       r"trained with .*strict_scenarios=true refuses it"):  # fmt: skip
+        evaluate_run(
+            trained_run, scenarios_dir=other, strict_scenarios=True, out_dir=tmp_path / "s"
+        )
+    assert not (tmp_path / "s").exists()
+
+
+def test_cli_bad_input_is_one_line(tmp_path):
+    res = run_cli("evaluate.py", f"run_dir={tmp_path / 'nowhere'}")
+    assert res.returncode == 2
+    assert (
+        res.stderr.strip().splitlines()[-1]
+        == f"error: run_dir: no run directory at {tmp_path / 'nowhere'}"
+    )
+
+
+def test_bad_thread_count_is_refused(trained_run):
+    cfg = compose_config("evaluate", [f"run_dir={trained_run}", "threads=0"])
+    with pytest.raises(ConfigError, match=r"threads: must be a positive integer or null, got 0"):
+        evaluate_from_config(cfg)
+
+
+def test_evaluate_yaml_is_evaluate_run_with_its_defaults():
+    yaml = OmegaConf.load(ROOT / "conf" / "evaluate.yaml")
+    params = inspect.signature(evaluate_run).parameters
+    keys = set(yaml) - {"defaults", "hydra", "compare", "threads"}  # entry-point options
+    assert keys == set(params)
+    for key in keys - {"run_dir"}:
+        default = params[key].default
+        assert yaml[key] == (list(default) if isinstance(default, tuple) else default), key
+    cfg = compose_config("evaluate", ["run_dir=x"])
+    assert (cfg.policy, cfg.ckpt, cfg.split, cfg.strict_scenarios) == (
+        "checkpoint",
+        "best",
+        "test",
+        False,
+    )

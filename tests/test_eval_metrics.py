@@ -1,0 +1,137 @@
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+
+from rlplat.eval.baselines import ProportionalNavigationPolicy
+from rlplat.eval.metrics import (
+    iqm,
+    outcome_stats,
+    speed_ratio_bin,
+    speed_ratio_labels,
+    stratified_bootstrap_ci,
+    wilson_interval,
+)
+from rlplat.eval.report import pick_episodes
+
+
+@pytest.mark.parametrize(
+    ("k", "n", "expected"),
+    [
+        (8, 10, (0.4902, 0.9433)),
+        (0, 10, (0.0, 0.2775)),
+        (10, 10, (0.7225, 1.0)),
+        (50, 100, (0.4038, 0.5962)),
+        (1, 3, (0.0615, 0.7923)),
+    ],
+)
+def test_wilson_interval_known_values(k, n, expected):
+    assert wilson_interval(k, n) == pytest.approx(expected, abs=1e-4)
+
+
+def test_wilson_interval_edges():
+    assert all(math.isnan(v) for v in wilson_interval(0, 0))
+    with pytest.raises(ValueError, match=r"successes must be in \[0, 5\], got 6"):
+        wilson_interval(6, 5)
+
+
+def test_iqm_is_the_mean_of_the_middle_half():
+    assert iqm(np.arange(1, 9)) == pytest.approx(4.5)  # mean of 3, 4, 5, 6
+    assert iqm([0, 0, 0, 0, 1, 1, 1, 100]) == pytest.approx(0.5)  # the outlier is cut
+    assert iqm([[1.0, 3.0], [5.0, 7.0]]) == pytest.approx(4.0)  # all runs x tasks together
+
+
+def test_bootstrap_of_two_seeds_has_the_exact_percentiles():
+    # Resampled means of [0, 1] are 0, 0.5, 1 with probabilities 1/4, 1/2, 1/4.
+    point, low, high = stratified_bootstrap_ci([0.0, 1.0], np.mean, reps=4000, seed=1)
+    assert (point, low, high) == (0.5, 0.0, 1.0)
+
+
+def test_bootstrap_matches_the_normal_interval_for_many_seeds():
+    x = np.r_[np.ones(120), np.zeros(280)]  # p = 0.3, n = 400
+    point, low, high = stratified_bootstrap_ci(x, np.mean, reps=4000, seed=0)
+    half = 1.96 * math.sqrt(0.3 * 0.7 / 400)
+    assert point == pytest.approx(0.3)
+    assert low == pytest.approx(0.3 - half, abs=0.01) and high == pytest.approx(
+        0.3 + half, abs=0.01
+    )
+
+
+def test_bootstrap_resamples_within_each_task():
+    # Each task's runs agree: every stratified resample has the same pooled mean. A bootstrap
+    # that pooled the tasks would mix them and give a wide interval.
+    scores = np.array([[0.0, 1.0]] * 5)
+    assert stratified_bootstrap_ci(scores, np.mean, reps=500) == (0.5, 0.5, 0.5)
+    varied = np.array([[0.1, 0.9], [0.3, 0.5], [0.2, 0.6], [0.4, 0.8]])
+    a = stratified_bootstrap_ci(varied, reps=500, seed=3)
+    assert a == stratified_bootstrap_ci(varied, reps=500, seed=3)  # fixed seed, same interval
+    assert a[1] < a[0] < a[2] and a != stratified_bootstrap_ci(varied, reps=500, seed=4)
+
+
+def test_speed_ratio_bins_and_labels():
+    edges = (0.5, 0.8, 1.0, 1.25, 2.0)
+    assert speed_ratio_bin([0.4, 0.5, 0.99, 1.0, 3.0], edges).tolist() == [0, 1, 2, 3, 5]
+    assert speed_ratio_labels(edges) == ["<0.5", "0.5-0.8", "0.8-1", "1-1.25", "1.25-2", ">=2"]
+
+
+def test_outcome_stats_average_time_over_captures_only():
+    s = outcome_stats(
+        captured=np.array([True, False, True, True]),
+        time_to_capture=np.array([2.0, np.nan, 4.0, 9.0]),
+        returns=np.array([1.0, -3.0, 1.0, 1.0]),
+        visible_fraction=np.array([1.0, 0.5, 1.0, 1.0]),
+        min_distance=np.array([1.0, 9.0, 1.0, 1.0]),
+    )
+    assert (s["n"], s["captured"], s["capture_rate"]) == (4, 3, 0.75)
+    assert s["capture_rate_ci95"] == pytest.approx(wilson_interval(3, 4))
+    assert s["mean_time_to_capture_s"] == 5.0 and s["median_time_to_capture_s"] == 4.0
+    assert s["mean_return"] == 0.0 and s["mean_visible_fraction"] == 0.875
+
+
+def test_pick_episodes_takes_fastest_captures_and_worst_misses():
+    rows = [
+        {"captured": True, "time_to_capture_s": 5.0, "min_distance_m": 1.0},
+        {"captured": False, "time_to_capture_s": None, "min_distance_m": 3.0},
+        {"captured": True, "time_to_capture_s": 2.0, "min_distance_m": 1.1},
+        {"captured": False, "time_to_capture_s": None, "min_distance_m": 30.0},
+        {"captured": True, "time_to_capture_s": 9.0, "min_distance_m": 1.0},
+    ]
+    assert pick_episodes(rows, 4) == [(2, "best"), (0, "best"), (3, "worst"), (1, "worst")]
+    assert pick_episodes(rows, 5) == [(2, "best"), (0, "best"), (4, "best"), (3, "worst"),
+                                      (1, "worst")]  # fmt: skip
+    caught = [rows[0], rows[2], rows[4]]
+    assert pick_episodes(caught, 3) == [(1, "best"), (0, "best"), (2, "worst")]  # slowest
+    assert pick_episodes(rows[:1], 3) == [(0, "best")]
+    assert pick_episodes(rows, 0) == []
+
+
+def fake_env(velocity_other, max_speed=5.0):
+    """What ProportionalNavigationPolicy reads of an env: one env, the attacker learns."""
+    velocity = torch.zeros(1, 2, 3)
+    velocity[0, 1] = torch.tensor(velocity_other)
+    return SimpleNamespace(
+        learner=0,
+        pursuit_gain=1.0,
+        max_speed=torch.tensor([[max_speed, 2.0]]),
+        dynamics=SimpleNamespace(velocity=velocity),
+    )
+
+
+def pn_action(env, rel, **kwargs):
+    positions = torch.tensor([[[0.0, 0.0, 10.0], [rel[0], rel[1], 10.0 + rel[2]]]])
+    td = TensorDict({"positions": positions}, batch_size=[1])
+    return ProportionalNavigationPolicy(env, **kwargs)(td)["action"][0].tolist()
+
+
+def test_proportional_navigation_leads_a_moving_target():
+    # Closing 10 m at 5 m/s takes 2 s; the target moves 2 m/s along y: aim 0.5 * 4 m ahead.
+    env = fake_env([0.0, 2.0, 0.0])
+    assert pn_action(env, (10.0, 0.0, 0.0)) == pytest.approx([1.0, 0.4, 0.0])
+    assert pn_action(env, (10.0, 0.0, 0.0), lead=0.0) == pytest.approx([1.0, 0.0, 0.0])
+    # A target faster than the learner on an axis: the lead time is capped.
+    env = fake_env([-6.0, 0.0, 0.0])
+    aim = -1.0 + 0.5 * -6.0 * 1.0
+    assert pn_action(env, (-1.0, 0.0, 0.0), max_lead_time=1.0)[0] == pytest.approx(aim / 5.0)
