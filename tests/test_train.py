@@ -169,7 +169,13 @@ def test_same_seed_same_training(scenarios, tmp_path):  # noqa: F811
         ("algo.batch_size=-4", "algo.batch_size: must be > 0, got -4"),
         (
             "algo.init_policy=expert",
-            "algo.init_policy: unknown 'expert'; valid: random, pure_pursuit",
+            "algo.init_policy: unknown 'expert'; valid: random, pure_pursuit, "
+            "proportional_navigation",
+        ),
+        (
+            "algo.init_policy=setpoint_follower",
+            "algo.init_policy: not for this learner 'setpoint_follower'; valid: random, "
+            "pure_pursuit, proportional_navigation",
         ),
         ("algo.init_noise=-1", "algo.init_noise: must be >= 0, got -1"),
         ("algo.action_margin=2", r"algo.action_margin: must be in \[0, 1\], got 2.0"),

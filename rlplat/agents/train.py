@@ -34,7 +34,7 @@ from rlplat.agents.sac import SACAgent, net_spec
 from rlplat.agents.transitions import n_step_transitions, shape_rewards
 from rlplat.envs.factory import build_env, resolve_scenarios
 from rlplat.errors import ConfigError
-from rlplat.eval.baselines import NoisyPolicy, PurePursuitPolicy
+from rlplat.eval.baselines import BASELINES, NoisyPolicy, PurePursuitPolicy, make_baseline
 from rlplat.eval.episodes import EpisodeResults, evaluate
 from rlplat.io import atomic_write_text
 
@@ -51,8 +51,9 @@ TRANSITION_KEYS = (
 )
 
 
-#: Who flies the first ``algo.init_random_frames`` frames, which fill the replay buffer.
-INIT_POLICIES = ("random", "pure_pursuit")
+#: Who flies the first ``algo.init_random_frames`` frames, which fill the replay buffer:
+#: uniform random actions, or a classical controller of the learner's role (plus noise).
+INIT_POLICIES = ("random", *BASELINES)
 
 
 @dataclass(frozen=True)
@@ -119,9 +120,13 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
         raise ConfigError(f"algo.utd_ratio: must be > 0, got {algo.utd_ratio}")
     if not isinstance(algo.n_steps, int) or algo.n_steps < 1:
         raise ConfigError(f"algo.n_steps: must be an integer >= 1, got {algo.n_steps}")
-    if algo.init_policy not in INIT_POLICIES:
+    valid_init = [
+        k for k in INIT_POLICIES if k == "random" or BASELINES[k].role == cfg.drone.learner
+    ]
+    if algo.init_policy not in valid_init:
+        why = "unknown" if algo.init_policy not in INIT_POLICIES else "not for this learner"
         raise ConfigError(
-            f"algo.init_policy: unknown '{algo.init_policy}'; valid: {', '.join(INIT_POLICIES)}"
+            f"algo.init_policy: {why} '{algo.init_policy}'; valid: {', '.join(valid_init)}"
         )
     if not algo.init_noise >= 0:
         raise ConfigError(f"algo.init_noise: must be >= 0, got {algo.init_noise}")
@@ -364,7 +369,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
 def _prefill(buffer, train_env, env, algo, keep) -> int:
     """Fill the replay buffer with ``algo.init_random_frames`` frames of the scripted
     ``algo.init_policy`` plus Gaussian noise (``algo.init_noise``); returns the frames."""
-    policy = NoisyPolicy(PurePursuitPolicy(env), algo.init_noise)
+    policy = NoisyPolicy(make_baseline(algo.init_policy, env), algo.init_noise)
     steps = algo.frames_per_batch // algo.num_envs
     frames, td = 0, train_env.reset()
     while frames < algo.init_random_frames:
