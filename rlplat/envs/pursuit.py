@@ -87,10 +87,10 @@ class PursuitEnv(EnvBase):
         ``env`` of ``conf/train.yaml``; the components come from the ``dynamics``,
         ``observation``, ``action`` and ``reward`` groups. ``compile_step`` runs the step's
         numerical work (:meth:`_advance_eager`: commands, physics, reward, flags, observation)
-        as one ``torch.compile`` program for this batch size: about 2.5x the steps/s of the
-        eager env at N=1 and 1.7x at N=4096 with the ``velocity`` model, after a few seconds
-        of compiling (~1 min for ``quadrotor``, which it does not speed up). Input checks,
-        resets and the tensordict plumbing stay eager.
+        as one ``torch.compile`` program for this batch size: with the ``velocity`` model about
+        3x the steps/s of the eager env at N=1 and 2x at N=4096 on a 2-core CPU, after a few
+        seconds of compiling (~1 min for ``quadrotor``, which it does not speed up). Input
+        checks, resets and the tensordict plumbing stay eager.
     """
 
     def __init__(
