@@ -153,3 +153,34 @@ def test_action_margin_reaches_full_scale_inside_the_bounds():
     q_edge = critic(td.clone())["state_action_value"]
     q_past = critic(td.set("action", torch.full((8, 3), 1.15)))["state_action_value"]
     assert torch.equal(q_edge, q_past)
+
+
+def test_fused_soft_update_is_torchrls_soft_update():
+    from torchrl.data import Bounded
+    from torchrl.objectives import SoftUpdate
+
+    from rlplat.agents.sac import FusedSoftUpdate, NetSpec, SACAgent
+
+    net = NetSpec(9, 3, (16, 16), (16, 16), "relu", (1.0,) * 9)
+    spec = Bounded(-1.0, 1.0, shape=(3,))
+    agents = []
+    for _ in range(2):
+        torch.manual_seed(0)
+        agents.append(
+            SACAgent(net, spec, gamma=0.99, tau=0.1, actor_lr=1e-3, critic_lr=1e-3, alpha_lr=1e-3)
+        )
+    fused, plain = agents[0].target_updater, SoftUpdate(agents[1].loss, tau=0.1)
+    assert isinstance(fused, FusedSoftUpdate)
+    for step in range(3):
+        for agent in agents:  # move the online critics, the targets must follow
+            with torch.no_grad():
+                for p in agent.loss.qvalue_network_params.values(True, True):
+                    p.add_(0.5 * (step + 1))
+        fused.step()
+        plain.step()
+        a = agents[0].loss.target_qvalue_network_params
+        b = agents[1].loss.target_qvalue_network_params
+        online = agents[0].loss.qvalue_network_params
+        for key in b.keys(True, True):
+            torch.testing.assert_close(a[key], b[key], rtol=1e-6, atol=1e-6)
+        assert not torch.allclose(a[key], online[key])  # a soft step, not a copy
