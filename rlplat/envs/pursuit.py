@@ -253,7 +253,7 @@ class PursuitEnv(EnvBase):
         """One control period for every env: the step's whole numerical work on tensors.
 
         Reads and replaces the episode state and the dynamics' state; returns the entries of the
-        step's output tensordict. ``env.compile`` wraps this method in ``torch.compile``.
+        step's output tensordict. ``env.compile_step`` wraps this method in ``torch.compile``.
         """
         # Command every drone: the opponent by its script, the learner by the policy.
         p = self.dynamics.position
