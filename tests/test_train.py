@@ -178,6 +178,7 @@ def test_same_seed_same_training(scenarios, tmp_path):  # noqa: F811
             "pure_pursuit, proportional_navigation",
         ),
         ("algo.init_noise=-1", "algo.init_noise: must be >= 0, got -1"),
+        ("train.threads=0", "train.threads: must be a positive integer or null, got 0"),
         ("algo.action_margin=2", r"algo.action_margin: must be in \[0, 1\], got 2.0"),
     ],
 )
@@ -231,3 +232,13 @@ def test_cluster_launcher_config_composes():
     res = cli("hydra/launcher=cluster", "--cfg", "hydra", "--package", "hydra.launcher")
     assert res.returncode == 0, res.stderr[-2000:]
     assert "submitit_launcher.SlurmLauncher" in res.stdout and "timeout_min: 60" in res.stdout
+
+
+def test_threads_option_sets_torchs_thread_count(scenarios, tmp_path):  # noqa: F811
+    before = torch.get_num_threads()
+    want = 1 if before > 1 else 2
+    try:
+        tiny_run(scenarios, tmp_path, f"train.threads={want}")
+        assert torch.get_num_threads() == want
+    finally:
+        torch.set_num_threads(before)

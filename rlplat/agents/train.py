@@ -133,12 +133,19 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     if algo.potential_weight and algo.potential_key not in ("distance",):
         raise ConfigError(f"algo.potential_key: unknown '{algo.potential_key}'; valid: distance")
     keep = (*TRANSITION_KEYS, "steps_to_next_obs") if algo.n_steps > 1 else TRANSITION_KEYS
+    threads = cfg.train.threads
+    if threads is not None and (not isinstance(threads, int) or threads < 1):
+        raise ConfigError(f"train.threads: must be a positive integer or null, got {threads}")
     device = torch.device(cfg.train.device)
     ckpt_dir = run_dir / "checkpoints"
     resume_state = None
     if cfg.resume:
         resume_state = load_checkpoint(ckpt_dir / "last.pt")
 
+    if threads is not None:
+        # On a few cores, runs side by side (hydra/launcher=joblib) want one thread each:
+        # torch's threads wait for each other on every small kernel when a core is taken.
+        torch.set_num_threads(threads)
     scenarios = resolve_scenarios(cfg, cfg.scenarios_dir)
     env = build_env(cfg, scenarios=scenarios, split="train", num_envs=algo.num_envs, device=device)
     terms = list(env.reward_fn.weights)
