@@ -71,14 +71,28 @@ class Metrics:
                 finish()
 
 
-def plot_learning_curve(history: Mapping[str, list[tuple[int, float]]], path: Path) -> None:
-    """Validation capture rate (with the pure-pursuit reference) and mean return, and training
-    return, against frames (PNG)."""
+def pyplot():
+    """matplotlib's pyplot on the non-interactive Agg backend."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    return plt
+
+
+def save_figure(fig, path: Path) -> None:
+    """Write ``fig`` as a PNG atomically and close it."""
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=100)
+    pyplot().close(fig)
+    atomic_write_bytes(path, buffer.getvalue())
+
+
+def plot_learning_curve(history: Mapping[str, list[tuple[int, float]]], path: Path) -> None:
+    """Validation capture rate (with the pure-pursuit reference) and mean return, and training
+    return, against frames (PNG)."""
+    plt = pyplot()
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
     for name, axis in (("eval/capture_rate", top), ("eval/mean_return", bottom)):
         if history.get(name):
@@ -98,7 +112,4 @@ def plot_learning_curve(history: Mapping[str, list[tuple[int, float]]], path: Pa
         axis.grid(alpha=0.3)
         axis.legend(loc="lower right")
     fig.tight_layout()
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=100)
-    plt.close(fig)
-    atomic_write_bytes(path, buffer.getvalue())
+    save_figure(fig, path)

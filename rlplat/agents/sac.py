@@ -131,16 +131,16 @@ class FusedSoftUpdate(SoftUpdate):
     the same tensors for the life of the loss module, so they are collected once.
     """
 
+    def init_(self) -> None:
+        super().init_()
+        keys = list(self._sources.keys(True, True))
+        self._targets_flat = [
+            self._targets.get(("target_" + k[0], *k[1:])).data for k in map(_as_tuple, keys)
+        ]
+        self._sources_flat = [self._sources.get(k).data for k in keys]
+
     def step(self) -> None:
-        if not self.initialized:
-            raise RuntimeError("FusedSoftUpdate must be initialised (init_()) before step()")
-        pairs = self.__dict__.get("_fused_pairs")
-        if pairs is None:
-            keys = list(self._sources.keys(True, True))
-            targets = [self._targets.get(("target_" + k[0], *k[1:])) for k in map(_as_tuple, keys)]
-            pairs = ([t.data for t in targets], [self._sources.get(k).data for k in keys])
-            self.__dict__["_fused_pairs"] = pairs
-        torch._foreach_lerp_(pairs[0], pairs[1], 1.0 - self.eps)
+        torch._foreach_lerp_(self._targets_flat, self._sources_flat, 1.0 - self.eps)
 
 
 def _as_tuple(key: str | tuple[str, ...]) -> tuple[str, ...]:

@@ -32,6 +32,7 @@ from rlplat.agents.checkpoint import (
 from rlplat.agents.metrics import Metrics, make_logger, plot_learning_curve
 from rlplat.agents.sac import SACAgent, net_spec
 from rlplat.agents.transitions import n_step_transitions, shape_rewards
+from rlplat.config import checked_threads
 from rlplat.envs.factory import build_env, resolve_scenarios
 from rlplat.errors import ConfigError
 from rlplat.eval.baselines import BASELINES, NoisyPolicy, PurePursuitPolicy, make_baseline
@@ -133,9 +134,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     if algo.potential_weight and algo.potential_key not in ("distance",):
         raise ConfigError(f"algo.potential_key: unknown '{algo.potential_key}'; valid: distance")
     keep = (*TRANSITION_KEYS, "steps_to_next_obs") if algo.n_steps > 1 else TRANSITION_KEYS
-    threads = cfg.train.threads
-    if threads is not None and (not isinstance(threads, int) or threads < 1):
-        raise ConfigError(f"train.threads: must be a positive integer or null, got {threads}")
+    threads = checked_threads(cfg.train.threads, "train.threads")
     device = torch.device(cfg.train.device)
     ckpt_dir = run_dir / "checkpoints"
     resume_state = None

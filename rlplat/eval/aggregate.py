@@ -20,10 +20,10 @@ from typing import Any
 import numpy as np
 from omegaconf import OmegaConf
 
+from rlplat.agents.metrics import pyplot, save_figure
 from rlplat.cli import exit_on_error
 from rlplat.errors import ConfigError
 from rlplat.eval.metrics import iqm, stratified_bootstrap_ci
-from rlplat.eval.report import pyplot, save_figure
 from rlplat.io import atomic_write_text
 
 log = logging.getLogger(__name__)

@@ -15,10 +15,10 @@ import logging
 from pathlib import Path
 from typing import Any
 
+from rlplat.agents.metrics import pyplot, save_figure
 from rlplat.cli import exit_on_error
 from rlplat.errors import ConfigError
 from rlplat.eval.baselines import BASELINES
-from rlplat.eval.report import pyplot, save_figure
 from rlplat.io import atomic_write_text
 from rlplat.scenarios import SPLITS
 

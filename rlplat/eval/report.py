@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import io
 import logging
 import math
 from collections.abc import Mapping, Sequence
@@ -11,29 +10,11 @@ from typing import Any
 
 import torch
 
-from rlplat.agents.metrics import plot_learning_curve
+from rlplat.agents.metrics import plot_learning_curve, pyplot, save_figure
 from rlplat.eval.episodes import EpisodeResults
-from rlplat.io import atomic_write_bytes, atomic_write_text
+from rlplat.io import atomic_write_text
 
 log = logging.getLogger(__name__)
-
-
-def pyplot():
-    """matplotlib's pyplot on the non-interactive Agg backend."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def save_figure(fig, path: Path) -> None:
-    """Write ``fig`` as a PNG atomically and close it."""
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=100)
-    pyplot().close(fig)
-    atomic_write_bytes(path, buffer.getvalue())
 
 
 def read_scalars(run_dir: Path) -> dict[str, list[tuple[int, float]]]:

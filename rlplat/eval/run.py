@@ -22,6 +22,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from rlplat.agents.checkpoint import actor_from_state, load_checkpoint
+from rlplat.config import checked_threads
 from rlplat.envs.factory import build_env, resolve_scenarios
 from rlplat.envs.pursuit import PursuitEnv
 from rlplat.errors import ConfigError
@@ -326,10 +327,9 @@ def evaluate_from_config(cfg: DictConfig) -> list[str]:
         "speed_ratio_bins": list(cfg.speed_ratio_bins),
         "plots": bool(cfg.plots),
     }
-    if cfg.threads is not None:
-        if not isinstance(cfg.threads, int) or cfg.threads < 1:
-            raise ConfigError(f"threads: must be a positive integer or null, got {cfg.threads}")
-        torch.set_num_threads(cfg.threads)
+    threads = checked_threads(cfg.threads, "threads")
+    if threads is not None:
+        torch.set_num_threads(threads)
     policies = [cfg.policy]
     if cfg.compare:
         if cfg.out_dir is not None:
