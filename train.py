@@ -15,8 +15,13 @@ def main(cfg: DictConfig) -> None:
     from rlplat.agents import train
 
     summary = train(cfg)
+    score = (
+        ""
+        if summary["val_score"] == "capture_rate"
+        else (f"{summary['val_score'].replace('_', ' ')} {summary['test_score']:.3f}, ")
+    )
     print(
-        f"test capture rate {summary['test_capture_rate']:.3f} "
+        f"test {score}capture rate {summary['test_capture_rate']:.3f} "
         f"({summary['test_scenarios']} scenarios), run directory {summary['run_dir']}"
     )
 

@@ -278,7 +278,7 @@ def main() -> None:
             f"{run['wall_time_s']:.0f} s; best validation capture rate "
             f"{run['best_val_capture_rate']:.3f} at {run['best_frames']:,} frames; "
             f"test capture rate {run['test_capture_rate']:.3f}; "
-            f"pure pursuit on validation {run['pure_pursuit_val_capture_rate']:.3f}"
+            f"pure pursuit on validation {run['reference_val_capture_rate']:.3f}"
         )
 
 

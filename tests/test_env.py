@@ -17,7 +17,7 @@ from rlplat.envs.components import (
     inside_ellipsoid,
 )
 from rlplat.envs.controllers import follow_route
-from rlplat.envs.pursuit import _closest_approach
+from rlplat.envs.pursuit import PursuitEnv, _closest_approach
 from rlplat.errors import ConfigError
 from rlplat.scenarios import ScenarioSet, write_scenario_set
 
@@ -62,7 +62,7 @@ def test_registries_match_config_groups():
         cfg = OmegaConf.load(CONF / "reward" / f"{s}.yaml")
         Reward(**cfg)  # every term known, every key a constructor argument
         assert set(cfg.terms) <= set(REWARD_TERMS)
-    assert stems("drone") == {"attacker_v1", "attacker_v2", "attacker_v3"}
+    assert stems("drone") == {"attacker_v1", "attacker_v2", "attacker_v3", "defender_v1"}
 
 
 @pytest.mark.parametrize(
@@ -71,7 +71,8 @@ def test_registries_match_config_groups():
 def test_drone_bundles_pick_their_observation_and_cli_wins(scenarios, drone, dim):
     env = make_env(f"drone={drone}", scenarios=scenarios.path, num_envs=2)
     assert env.observation_spec["observation"].shape == (2, dim)
-    assert set(env.reward_fn.weights) == set(REWARD_TERMS)  # shaped by default
+    shaped = OmegaConf.load(CONF / "reward" / "shaped.yaml").terms
+    assert set(env.reward_fn.weights) == set(shaped)  # shaped by default
     env = make_env(f"drone={drone}", "reward=sparse", scenarios=scenarios.path)
     assert set(env.reward_fn.weights) == {"capture", "out_of_view", "ground_contact"}
 
@@ -290,8 +291,17 @@ def test_nn_defender_without_network_is_refused(tmp_path):
     from tests.conftest import spec_from
 
     write_scenario_set(spec_from(*SIZES, "scenario.strategy_mix.nn=1"), tmp_path)
+    with pytest.raises(ConfigError, match=r"env.defender_network: checkpoint: no file at /no"):
+        make_env("env.defender_network=/no/such.pt", scenarios=tmp_path)
+    env = make_env(scenarios=tmp_path)  # the shipped network
     with pytest.raises(ConfigError, match=r"scenarios ask for defender_strategy 'nn' but no "):
-        make_env(scenarios=tmp_path)
+        parts = (env.dynamics, env.obs_fn, env.action_fn, env.reward_fn)
+        PursuitEnv(
+            **dict(zip(("dynamics", "observation", "action", "reward"), parts, strict=True)),
+            scenarios=env.scenario_set,
+        )
+    # A learning defender flies itself: no network needed, none loaded.
+    assert make_env("drone=defender_v1", scenarios=tmp_path).defender_network is None
 
 
 def test_bad_env_option_is_refused(scenarios):

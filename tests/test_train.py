@@ -65,7 +65,8 @@ def test_cli_run_writes_the_run_directory(scenarios, tmp_path):  # noqa: F811
     ):
         assert key in summary
     assert summary["frames"] >= 256 and summary["scenario_digest"] == scenarios.digest
-    assert 0.0 <= summary["pure_pursuit_val_capture_rate"] <= 1.0
+    assert 0.0 <= summary["reference_val_capture_rate"] <= 1.0
+    assert summary["reference_policy"] == "pure_pursuit" and summary["val_score"] == "capture_rate"
     assert (run / "checkpoints" / "best.pt").is_file()
     assert (run / "checkpoints" / "last.pt").is_file()
     assert (run / "learning_curve.png").read_bytes()[:4] == b"\x89PNG"

@@ -35,7 +35,7 @@ from rlplat.agents.transitions import n_step_transitions, shape_rewards
 from rlplat.config import checked_threads
 from rlplat.envs.factory import build_env, resolve_scenarios
 from rlplat.errors import ConfigError
-from rlplat.eval.baselines import BASELINES, NoisyPolicy, PurePursuitPolicy, make_baseline
+from rlplat.eval.baselines import BASELINES, NoisyPolicy, make_baseline
 from rlplat.eval.episodes import EpisodeResults, evaluate
 from rlplat.io import atomic_write_text
 
@@ -55,6 +55,11 @@ TRANSITION_KEYS = (
 #: Who flies the first ``algo.init_random_frames`` frames, which fill the replay buffer:
 #: uniform random actions, or a classical controller of the learner's role (plus noise).
 INIT_POLICIES = ("random", *BASELINES)
+
+#: The scripted controller each learner is measured against on the validation split, and the
+#: name of the score validation maximises (:meth:`EpisodeResults.score`).
+REFERENCE = {"attacker": "pure_pursuit", "defender": "setpoint_follower"}
+SCORE_NAME = {"attacker": "capture_rate", "defender": "evasion_score"}
 
 
 @dataclass(frozen=True)
@@ -133,6 +138,8 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
         raise ConfigError(f"algo.init_noise: must be >= 0, got {algo.init_noise}")
     if algo.potential_weight and algo.potential_key not in ("distance",):
         raise ConfigError(f"algo.potential_key: unknown '{algo.potential_key}'; valid: distance")
+    role = cfg.drone.learner
+    score_name = SCORE_NAME.get(role, "capture_rate")
     keep = (*TRANSITION_KEYS, "steps_to_next_obs") if algo.n_steps > 1 else TRANSITION_KEYS
     threads = checked_threads(cfg.train.threads, "train.threads")
     device = torch.device(cfg.train.device)
@@ -183,7 +190,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
         device=device,
     )
     counters = {"frames": 0, "updates": 0, "evals": 0, "wall_time_s": 0.0}
-    best = {"capture_rate": -1.0, "mean_return": -float("inf"), "frames": 0}
+    best = {"score": -1.0, "capture_rate": -1.0, "mean_return": -float("inf"), "frames": 0}
     if resume_state is not None:
         agent.load_state_dict(resume_state["agent"])
         counters.update(resume_state["counters"])
@@ -198,9 +205,15 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     metrics = Metrics(run_dir, make_logger(cfg.logger, run_dir, cfg.drone.name, resolved))
 
     # The scripted reference on the same validation split: the rate a policy has to beat.
-    reference = evaluate(val_env, PurePursuitPolicy(val_env))
+    reference = evaluate(val_env, make_baseline(REFERENCE[role], val_env))
     metrics.log({f"reference/{k}": v for k, v in reference.summary().items()}, counters["frames"])
-    log.info("pure pursuit on the validation split: capture rate %.3f", reference.capture_rate)
+    log.info(
+        "%s on the validation split: %s %.3f, capture rate %.3f",
+        REFERENCE[role],
+        score_name,
+        reference.score(role),
+        reference.capture_rate,
+    )
 
     buffer = TensorDictReplayBuffer(
         storage=LazyTensorStorage(algo.buffer_size, device=device),
@@ -244,20 +257,20 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
         values["time/eval_s"] = time.perf_counter() - t0
         values["time/elapsed_s"] = time.perf_counter() - start
         metrics.log(values, counters["frames"])
-        better = (results.capture_rate, results.mean_return) > (
-            best["capture_rate"],
-            best["mean_return"],
-        )
+        better = (results.score(role), results.mean_return) > (best["score"], best["mean_return"])
         if better:
             best.update(
+                score=results.score(role),
                 capture_rate=results.capture_rate,
                 mean_return=results.mean_return,
                 frames=counters["frames"],
             )
             save_checkpoint(ckpt_dir / "best.pt", payload())
         log.info(
-            "frames %d: validation capture rate %.3f, mean return %.2f%s",
+            "frames %d: validation %s %.3f, capture rate %.3f, mean return %.2f%s",
             counters["frames"],
+            score_name,
+            results.score(role),
             results.capture_rate,
             results.mean_return,
             " (best)" if better else "",
@@ -283,7 +296,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
         disable=not cfg.train.progress,
         dynamic_ncols=True,
     )
-    last_val = best["capture_rate"] if best["capture_rate"] >= 0 else float("nan")
+    last_val = best["score"] if best["score"] >= 0 else float("nan")
     frames_at_start, session_start = counters["frames"], time.perf_counter()
     try:
         for batch in collector:
@@ -320,12 +333,12 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
                 deadline is not None and now >= deadline
             )
             if counters["frames"] >= next_eval or out_of_budget:
-                last_val = validate().capture_rate
+                last_val = validate().score(role)
                 next_eval += cfg.train.eval_every_frames
                 counters["wall_time_s"] = time.perf_counter() - start
                 save_checkpoint(ckpt_dir / "last.pt", payload())
             bar.update(n)
-            bar.set_postfix(val_capture=f"{last_val:.2f}", refresh=False)
+            bar.set_postfix({f"val_{score_name}": f"{last_val:.2f}"}, refresh=False)
             if out_of_budget:
                 break
     finally:
@@ -346,12 +359,18 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
         "frames": counters["frames"],
         "updates": counters["updates"],
         "wall_time_s": round(counters["wall_time_s"], 3),
+        "val_score": score_name,
+        "best_val_score": best["score"],
         "best_val_capture_rate": best["capture_rate"],
         "best_val_mean_return": best["mean_return"],
         "best_frames": best["frames"],
-        "pure_pursuit_val_capture_rate": reference.capture_rate,
+        "reference_policy": REFERENCE[role],
+        "reference_val_score": reference.score(role),
+        "reference_val_capture_rate": reference.capture_rate,
+        "test_score": test.score(role),
         "test_capture_rate": test.capture_rate,
         "test_mean_return": test.mean_return,
+        "test_route_fraction": test.route_fraction.mean().item(),
         "test_scenarios": n_test,
         "scenario_digest": scenarios.digest,
         "scenario_dir": str(scenarios.path),
@@ -363,7 +382,9 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     plot_learning_curve(metrics.history, run_dir / "learning_curve.png")
     metrics.close()
     log.info(
-        "test capture rate %.3f (%d scenarios), mean return %.2f; run directory %s",
+        "test %s %.3f, capture rate %.3f (%d scenarios), mean return %.2f; run directory %s",
+        score_name,
+        test.score(role),
         test.capture_rate,
         n_test,
         test.mean_return,

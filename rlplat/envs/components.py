@@ -16,17 +16,20 @@ from rlplat.errors import ConfigError
 
 @dataclass(frozen=True)
 class DroneView:
-    """The world seen from the learning drone: its own state and its opponent's.
+    """The world seen from one drone: its own state, its opponent's and the defender's route.
 
     Attributes:
         own_position, own_velocity, other_position, other_velocity: (N, 3) float32, m and m/s,
             world frame ENU.
+        setpoint: (N, 3) float32 m, the route setpoint the defender flies to (its last one once
+            the route is flown); None where no observation reads it.
     """
 
     own_position: Tensor
     own_velocity: Tensor
     other_position: Tensor
     other_velocity: Tensor
+    setpoint: Tensor | None = None
 
 
 def inside_ellipsoid(rel: Tensor, semi_axes: Tensor) -> Tensor:
@@ -100,10 +103,32 @@ class RelativeStateObservation(_Observation):
         )
 
 
+class RouteStateObservation(_Observation):
+    """What a route-flying defender needs: its own velocity, the way to its next setpoint and
+    the attacker's relative state.
+
+    s = [v_own, setpoint - p_own, p_other - p_own, v_other - v_own], (N, 12).
+    """
+
+    layout = ("v", "p", "p", "v")
+
+    def __call__(self, view: DroneView) -> Tensor:
+        return torch.cat(
+            [
+                view.own_velocity,
+                view.setpoint - view.own_position,
+                view.other_position - view.own_position,
+                view.other_velocity - view.own_velocity,
+            ],
+            -1,
+        )
+
+
 OBSERVATIONS = {
     "absolute": AbsoluteObservation,
     "relative_position": RelativePositionObservation,
     "relative_state": RelativeStateObservation,
+    "route_state": RouteStateObservation,
 }
 
 
@@ -135,7 +160,11 @@ class RewardContext:
         visible: (N,) bool, the defender inside the attacker's vision ellipsoid.
         captured: (N,) bool, the attacker came within the capture radius during the step.
         grounded: (N,) bool, a drone is at or below the ground altitude after the step.
-        distance_scale: m, the normalising distance of the ``distance_sq`` term.
+        distance_scale: m, the normalising distance of the ``distance_sq`` and ``proximity``
+            terms.
+        route_progress: (N,) m the defender gained on its current setpoint during the step
+            (negative when it moved away; 0 once its route is flown).
+        setpoint_reached: (N,) bool, the defender reached its current setpoint in the step.
     """
 
     distance: Tensor
@@ -143,6 +172,8 @@ class RewardContext:
     captured: Tensor
     grounded: Tensor
     distance_scale: float
+    route_progress: Tensor | None = None
+    setpoint_reached: Tensor | None = None
 
 
 def _capture(c: RewardContext) -> Tensor:
@@ -166,6 +197,20 @@ def _in_view_step(c: RewardContext) -> Tensor:
     return (c.visible & ~c.captured).float()
 
 
+def _proximity(c: RewardContext) -> Tensor:
+    """0 beyond ``distance_scale``, rising quadratically to 1 at contact (the defender's
+    threat term: it grows as the attacker closes in)."""
+    return (1.0 - c.distance / c.distance_scale).clamp_min(0.0) ** 2
+
+
+def _route_progress(c: RewardContext) -> Tensor:
+    return c.route_progress
+
+
+def _setpoint_reached(c: RewardContext) -> Tensor:
+    return c.setpoint_reached.float()
+
+
 #: Reward terms: each returns an unweighted (N,) float32 value; a YAML gives the weights.
 REWARD_TERMS: dict[str, Callable[[RewardContext], Tensor]] = {
     "capture": _capture,
@@ -173,6 +218,9 @@ REWARD_TERMS: dict[str, Callable[[RewardContext], Tensor]] = {
     "distance_sq": _distance_sq,
     "in_view_step": _in_view_step,
     "ground_contact": _ground_contact,
+    "proximity": _proximity,
+    "route_progress": _route_progress,
+    "setpoint_reached": _setpoint_reached,
 }
 
 
@@ -182,7 +230,9 @@ class Reward:
     With ``capture: 10, out_of_view: -1, distance_sq: -2, in_view_step: -0.1`` and
     ``distance_scale: 60`` this is paper eq. 3 exactly: +10 on capture; -1 if the defender is
     out of view; otherwise -2 d^2 / 60^2 - 0.1. ``ground_contact`` prices the crash that ends
-    an episode (eq. 3 has no crash; see ``conf/reward/shaped.yaml``).
+    an episode (eq. 3 has no crash; see ``conf/reward/shaped.yaml``). The defender's reward
+    (``conf/reward/evasion.yaml``) pays ``route_progress`` and ``setpoint_reached`` and charges
+    ``proximity``, ``capture`` and ``ground_contact``.
     """
 
     def __init__(self, *, terms: Mapping[str, float], distance_scale: float = 60.0) -> None:

@@ -18,7 +18,7 @@ from rlplat.envs.components import ACTIONS, OBSERVATIONS, Reward
 from rlplat.envs.dynamics import DYNAMICS
 from rlplat.envs.pursuit import PursuitEnv
 from rlplat.errors import ConfigError
-from rlplat.scenarios import ScenarioSet, ScenarioSpec, write_scenario_set
+from rlplat.scenarios import STRATEGIES, ScenarioSet, ScenarioSpec, write_scenario_set
 
 log = logging.getLogger(__name__)
 
@@ -102,6 +102,9 @@ def build_env(
             "device",
         ),
     )
+    env_kwargs["defender_network"] = _defender_network(
+        env_kwargs.get("defender_network"), scenarios, split, c["drone"]["learner"]
+    )
     return PursuitEnv(
         scenarios=scenarios,
         dynamics=dynamics,
@@ -113,3 +116,14 @@ def build_env(
         device=device,
         **env_kwargs,
     )
+
+
+def _defender_network(path: str | None, scenarios: ScenarioSet, split: str, learner: str):
+    """The network that flies the split's ``nn`` defenders (``env.defender_network``; null =
+    the shipped one); None where no scripted defender needs one."""
+    nn_rows = scenarios.split(split)["defender_strategy"] == STRATEGIES.index("nn")
+    if learner != "attacker" or not bool(nn_rows.any()):
+        return None
+    from rlplat.agents.controller import load_controller  # the agents import this module
+
+    return load_controller(path, "defender", "env.defender_network")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Literal, Protocol
 
 import torch
@@ -17,6 +18,7 @@ from rlplat.errors import ConfigError
 from rlplat.scenarios import STRATEGIES, ScenarioSet
 
 ATTACKER, DEFENDER = 0, 1
+NN = STRATEGIES.index("nn")
 ROLES = ("attacker", "defender")
 ORDERS = ("sequential", "shuffled", "random")
 
@@ -64,9 +66,11 @@ class ScenarioSampler:
 class PursuitEnv(EnvBase):
     """An attacker drone pursues a defender drone that flies a route.
 
-    Every step commands the drone that does not learn (the defender follows its route; an
-    attacker that does not learn flies pure pursuit), applies the learner's action to its own
-    drone, advances the dynamics one control period and reports what happened.
+    Every step commands the drone that does not learn (the defender flies its route with the
+    scenario's strategy: ``setpoints``, straight from setpoint to setpoint, or ``nn``, the
+    defender network; an attacker that does not learn flies pure pursuit), applies the
+    learner's action to its own drone, advances the dynamics one control period and reports
+    what happened.
 
     Observation:
         ``observation`` (N, obs.dim) from the observation component, seen from the learner.
@@ -114,6 +118,7 @@ class PursuitEnv(EnvBase):
         setpoint_gain: float = 1.0,
         pursuit_gain: float = 5.0,
         compile_step: bool = False,
+        defender_network: Callable[[DroneView], Tensor] | None = None,
         device: torch.device | str = "cpu",
     ) -> None:
         num_envs = dynamics.position.shape[0]
@@ -125,13 +130,14 @@ class PursuitEnv(EnvBase):
                 raise ConfigError(f"env.{name}: must be > 0, got {v}")
         self.scenario_set, self.split_name = scenarios, split
         self.scenarios = scenarios.split(split).to(self.device)
-        n_nn = int((self.scenarios["defender_strategy"] == STRATEGIES.index("nn")).sum())
-        if n_nn:
+        n_nn = int((self.scenarios["defender_strategy"] == NN).sum())
+        if n_nn and learner == "attacker" and defender_network is None:
             raise ConfigError(
                 f"scenario split '{split}': {n_nn} scenarios ask for defender_strategy 'nn' but "
-                "no defender network is configured; generate the set with "
-                "scenario.strategy_mix.nn=0"
+                "no defender network is given (env.defender_network)"
             )
+        # Maps the defender's view to its action in [-1, 1] (see rlplat.agents.controller).
+        self.defender_network = defender_network if n_nn else None
         self.routes = scenarios.routes.to(self.device)
         self.dynamics = dynamics
         self.obs_fn, self.action_fn, self.reward_fn = observation, action, reward
@@ -156,6 +162,7 @@ class PursuitEnv(EnvBase):
         self.route = torch.zeros(num_envs, **z)
         self.waypoint = torch.zeros(num_envs, **z)
         self.step_count = torch.zeros(num_envs, **z)
+        self.nn_defender = torch.zeros(num_envs, dtype=torch.bool, device=self.device)
         self.max_speed = torch.ones(num_envs, 2, device=self.device)
         self._make_specs(num_envs)
 
@@ -218,6 +225,7 @@ class PursuitEnv(EnvBase):
             self.route = self.route.masked_scatter(mask, sc["route"])
             self.waypoint = self.waypoint.masked_fill(mask, 0)
             self.step_count = self.step_count.masked_fill(mask, 0)
+            self.nn_defender = self.nn_defender.masked_scatter(mask, sc["defender_strategy"] == NN)
             self.max_speed = self.max_speed.masked_scatter(
                 mask.unsqueeze(-1),
                 torch.stack([sc["attacker_max_speed"], sc["defender_max_speed"]], -1),
@@ -258,23 +266,34 @@ class PursuitEnv(EnvBase):
         # Command every drone: the opponent by its script, the learner by the policy.
         p = self.dynamics.position
         target, route_done = self._target()
-        opponent = self._scripted_command(p, target, route_done)
+        opponent = self._scripted_command(p, self.dynamics.velocity, target, route_done)
         own = self.action_fn(action, self.max_speed[:, self.learner])
         pair = (own, opponent) if self.learner == ATTACKER else (opponent, own)
         rel_before = p[:, DEFENDER] - p[:, ATTACKER]
+        to_target = (target - p[:, DEFENDER]).norm(dim=-1)
         self.dynamics.advance(torch.stack(pair, 1), self.control_period)
         p = self.dynamics.position
         self.step_count = self.step_count + 1
         # The defender moves on once it is within the acceptance radius of its setpoint.
-        reached = (p[:, DEFENDER] - target).norm(dim=-1) <= self.setpoint_acceptance
-        self.waypoint = self.waypoint + (reached & ~route_done)
+        to_target_after = (target - p[:, DEFENDER]).norm(dim=-1)
+        reached = (to_target_after <= self.setpoint_acceptance) & ~route_done
+        self.waypoint = self.waypoint + reached
+        progress = (to_target - to_target_after).masked_fill(route_done, 0.0)
 
         rel = p[:, DEFENDER] - p[:, ATTACKER]
         distance, visible = rel.norm(dim=-1), inside_ellipsoid(rel, self.semi_axes)
         captured = _closest_approach(rel_before, rel) <= self.capture_radius
         grounded = (p[..., 2] <= self.ground_altitude).any(-1)
         total, terms = self.reward_fn(
-            RewardContext(distance, visible, captured, grounded, self.reward_fn.distance_scale)
+            RewardContext(
+                distance,
+                visible,
+                captured,
+                grounded,
+                self.reward_fn.distance_scale,
+                route_progress=progress,
+                setpoint_reached=reached,
+            )
         )
         terminated = captured | grounded
         if self.terminate_out_of_view:
@@ -299,12 +318,18 @@ class PursuitEnv(EnvBase):
         last = self.routes.shape[1] - 1
         return self.routes[self.route, self.waypoint.clamp(max=last)], self.waypoint > last
 
-    def _scripted_command(self, p: Tensor, target: Tensor, route_done: Tensor) -> Tensor:
+    def _scripted_command(self, p: Tensor, v: Tensor, target: Tensor, route_done: Tensor) -> Tensor:
         opponent = 1 - self.learner
         speed = self.max_speed[:, opponent]
-        if opponent == DEFENDER:
-            return follow_route(p[:, DEFENDER], target, route_done, speed, self.setpoint_gain)
-        return pure_pursuit(p[:, ATTACKER], p[:, DEFENDER], speed, self.pursuit_gain)
+        if opponent == ATTACKER:
+            return pure_pursuit(p[:, ATTACKER], p[:, DEFENDER], speed, self.pursuit_gain)
+        command = follow_route(p[:, DEFENDER], target, route_done, speed, self.setpoint_gain)
+        if self.defender_network is None:
+            return command
+        view = DroneView(p[:, DEFENDER], v[:, DEFENDER], p[:, ATTACKER], v[:, ATTACKER], target)
+        learned = self.action_fn(self.defender_network(view), speed)
+        use = (self.nn_defender & ~route_done).unsqueeze(-1)
+        return torch.where(use, learned, command)
 
     def _outputs(
         self,
@@ -316,7 +341,7 @@ class PursuitEnv(EnvBase):
         """The output entries; every tensor in them is fresh (no alias of the env's state)."""
         p, v = self.dynamics.position, self.dynamics.velocity  # replaced on every advance/reset
         me, other = self.learner, 1 - self.learner
-        view = DroneView(p[:, me], v[:, me], p[:, other], v[:, other])
+        view = DroneView(p[:, me], v[:, me], p[:, other], v[:, other], self._target()[0])
         return {
             "observation": self.obs_fn(view),
             "distance": distance.unsqueeze(-1),

@@ -37,6 +37,8 @@ COLUMNS = (
     "mean_return",
     "mean_visible_fraction",
     "mean_min_distance_m",
+    "mean_route_fraction",
+    "evasion_score",
 )
 
 
@@ -84,7 +86,7 @@ def table_rows(summaries: list[dict[str, Any]]) -> list[dict[str, Any]]:
                 "capture_rate": s["capture_rate"],
                 "ci95_low": s["capture_rate_ci95"][0],
                 "ci95_high": s["capture_rate_ci95"][1],
-                **{k: s[k] for k in COLUMNS[7:]},
+                **{k: s.get(k) for k in COLUMNS[7:]},
             }
         )
     return rows
@@ -98,8 +100,9 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
 
     lines = [
         "| policy | scenarios | capture rate [95 % CI] | mean / median time to capture [s] "
-        "| mean return | visible fraction | mean closest distance [m] |",
-        "|---|---|---|---|---|---|---|",
+        "| mean return | visible fraction | mean closest distance [m] | route fraction "
+        "| evasion score |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
@@ -107,7 +110,8 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
             f"[{num(r['ci95_low'])}, {num(r['ci95_high'])}] "
             f"| {num(r['mean_time_to_capture_s'], 1)} / {num(r['median_time_to_capture_s'], 1)} "
             f"| {num(r['mean_return'], 2)} | {num(r['mean_visible_fraction'])} "
-            f"| {num(r['mean_min_distance_m'], 2)} |"
+            f"| {num(r['mean_min_distance_m'], 2)} | {num(r['mean_route_fraction'])} "
+            f"| {num(r['evasion_score'])} |"
         )
     return "\n".join(lines)
 

@@ -28,6 +28,7 @@ class EpisodeResults:
             captured episode can show slightly more than the capture radius).
         visible_fraction: (E,) float32, fraction of the episode's steps that ended with the
             defender inside the attacker's vision ellipsoid.
+        route_fraction: (E,) float32, fraction of its route's setpoints the defender reached.
         positions: (E, T + 1, 2, 3) float32 m, both drones (attacker, defender) at the start
             and after every step, T the longest episode; an episode that ended earlier repeats
             its final positions. None unless ``evaluate(..., record=True)``.
@@ -42,6 +43,7 @@ class EpisodeResults:
     term_sums: dict[str, torch.Tensor]
     min_distance: torch.Tensor
     visible_fraction: torch.Tensor
+    route_fraction: torch.Tensor
     positions: torch.Tensor | None = None
 
     @property
@@ -51,6 +53,18 @@ class EpisodeResults:
     @property
     def mean_return(self) -> float:
         return self.returns.mean().item()
+
+    @property
+    def evasion_score(self) -> float:
+        """The defender's goal in one number: the mean fraction of its route it flew without
+        being caught (a captured or crashed episode scores 0)."""
+        lost = self.captured | self.grounded
+        return self.route_fraction.masked_fill(lost, 0.0).mean().item()
+
+    def score(self, role: str) -> float:
+        """What a learner of ``role`` maximises: the attacker's capture rate, the defender's
+        evasion score; validation keeps the checkpoint with the highest."""
+        return self.capture_rate if role == "attacker" else self.evasion_score
 
     def summary(self) -> dict[str, float]:
         """Scalars for a logger: capture rate, mean return and length, visibility, per-term
@@ -62,6 +76,8 @@ class EpisodeResults:
             "ground_rate": self.grounded.float().mean().item(),
             "visible_fraction": self.visible_fraction.mean().item(),
             "mean_min_distance": self.min_distance.mean().item(),
+            "route_fraction": self.route_fraction.mean().item(),
+            "evasion_score": self.evasion_score,
         }
         if self.captured.any():
             out["mean_time_to_capture_s"] = self.time_to_capture[self.captured].mean().item()
@@ -99,6 +115,7 @@ def evaluate(
     min_distance = td["distance"].squeeze(-1).clone()
     visible_steps = torch.zeros(n, device=env.device)
     positions = [td["positions"]] if record else None
+    waypoint = td["waypoint"].squeeze(-1).clone()
     with set_exploration_type(kind):
         while alive.any():
             td = env.step(policy(td))
@@ -110,6 +127,7 @@ def evaluate(
             length += alive.long()
             d = nxt["distance"].squeeze(-1)
             min_distance = torch.where(alive, min_distance.minimum(d), min_distance)
+            waypoint = torch.where(alive, nxt["waypoint"].squeeze(-1), waypoint)
             visible_steps += nxt["visible"].squeeze(-1) * a
             if positions is not None:
                 keep = alive.view(n, 1, 1)
@@ -131,5 +149,6 @@ def evaluate(
         term_sums={k: v.cpu() for k, v in terms.items()},
         min_distance=min_distance.cpu(),
         visible_fraction=(visible_steps / length.clamp_min(1)).float().cpu(),
+        route_fraction=(waypoint.float() / env.routes.shape[1]).cpu(),
         positions=None if positions is None else torch.stack(positions, 1).cpu(),
     )

@@ -96,10 +96,15 @@ def outcome_stats(
     returns: np.ndarray,
     visible_fraction: np.ndarray,
     min_distance: np.ndarray,
+    route_fraction: np.ndarray | None = None,
+    evasion: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Capture rate with its 95 % Wilson interval and the means of a group of episodes.
 
     Times to capture are averaged over the captured episodes only (None if there are none).
+    ``route_fraction`` (share of its route the defender flew) and ``evasion`` (the same, 0 for
+    a captured or crashed defender) are averaged into ``mean_route_fraction`` and
+    ``evasion_score`` when given.
     """
     captured = np.asarray(captured, dtype=bool)
     n, k = int(captured.size), int(captured.sum())
@@ -115,6 +120,11 @@ def outcome_stats(
         "mean_return": float(np.mean(returns)) if n else math.nan,
         "mean_visible_fraction": float(np.mean(visible_fraction)) if n else math.nan,
         "mean_min_distance_m": float(np.mean(min_distance)) if n else math.nan,
+        **{
+            key: float(np.mean(v)) if n else math.nan
+            for key, v in (("mean_route_fraction", route_fraction), ("evasion_score", evasion))
+            if v is not None
+        },
     }
 
 

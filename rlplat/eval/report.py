@@ -114,8 +114,9 @@ def outcome_table(groups: Mapping[str, Mapping[str, Any]], first: str) -> list[s
     """Markdown table of :func:`rlplat.eval.metrics.outcome_stats` rows, one per group."""
     lines = [
         f"| {first} | n | captured | capture rate | 95 % CI | mean / median time to capture [s] "
-        "| mean return | visible fraction | mean closest distance [m] |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| mean return | visible fraction | mean closest distance [m] | route fraction "
+        "| evasion score |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, s in groups.items():
         lo, hi = s["capture_rate_ci95"]
@@ -123,7 +124,8 @@ def outcome_table(groups: Mapping[str, Mapping[str, Any]], first: str) -> list[s
         lines.append(
             f"| {name} | {s['n']} | {s['captured']} | {_fmt(s['capture_rate'])} "
             f"| [{_fmt(lo)}, {_fmt(hi)}] | {times} | {_fmt(s['mean_return'], 2)} "
-            f"| {_fmt(s['mean_visible_fraction'])} | {_fmt(s['mean_min_distance_m'], 2)} |"
+            f"| {_fmt(s['mean_visible_fraction'])} | {_fmt(s['mean_min_distance_m'], 2)} "
+            f"| {_fmt(s.get('mean_route_fraction'))} | {_fmt(s.get('evasion_score'))} |"
         )
     return lines
 

@@ -222,7 +222,7 @@ def episode_rows(
     ids = scenarios.ids[split]
     directions = route_labels(routes)
     keys = ("scenario_index", "captured", "grounded", "time_to_capture", "length")
-    keys += ("min_distance", "visible_fraction", "returns")
+    keys += ("min_distance", "visible_fraction", "route_fraction", "returns")
     out = {k: getattr(results, k).tolist() for k in keys}
     terms = {k: v.tolist() for k, v in results.term_sums.items()}
     rows = []
@@ -246,6 +246,8 @@ def episode_rows(
             "steps": out["length"][e],
             "min_distance_m": out["min_distance"][e],
             "visible_fraction": out["visible_fraction"][e],
+            "route_fraction": out["route_fraction"][e],
+            "evasion": 0.0 if captured or out["grounded"][e] else out["route_fraction"][e],
             "return": out["returns"][e],
             **{f"reward_{k}": v[e] for k, v in terms.items()},
         }
@@ -266,6 +268,8 @@ def summarize(rows: list[dict[str, Any]], terms: list[str], edges: list[float]) 
         "returns": col("return"),
         "visible_fraction": col("visible_fraction"),
         "min_distance": col("min_distance_m"),
+        "route_fraction": col("route_fraction"),
+        "evasion": col("evasion"),
     }
     routes = sorted({(r["route"], r["route_direction"]) for r in rows})
     strategies = {i: s for i, s in enumerate(STRATEGIES)}

@@ -1,0 +1,197 @@
+"""The defender as a learner (drone=defender_v1) and the `nn` defender strategy it feeds."""
+
+import json
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+from tensordict import TensorDict
+from torchrl.data import Bounded
+from torchrl.envs.utils import ExplorationType, check_env_specs, set_exploration_type
+
+from rlplat import make_env
+from rlplat.agents.checkpoint import actor_from_state, load_checkpoint, save_checkpoint
+from rlplat.agents.controller import (
+    SHIPPED_DEFENDER,
+    NetworkController,
+    export_controller,
+    load_controller,
+    shipped_path,
+    write_card,
+)
+from rlplat.envs.components import OBSERVATIONS, DroneView, Reward, RewardContext
+from rlplat.errors import ConfigError
+from rlplat.eval.baselines import SetpointFollowerPolicy
+from rlplat.eval.episodes import evaluate
+from rlplat.eval.run import evaluate_run
+from rlplat.scenarios import STRATEGIES, ScenarioSet, write_scenario_set
+from tests.conftest import spec_from
+from tests.test_env import CONF, SIZES, scenarios  # noqa: F401  (module-scoped fixture)
+from tests.test_train import TINY, cli, tiny_run
+
+
+@pytest.fixture(scope="module")
+def defender_run(scenarios, tmp_path_factory):  # noqa: F811
+    """A tiny defender_v1 run and its policy exported as a controller file."""
+    run = tmp_path_factory.mktemp("defender_run")
+    summary = tiny_run(scenarios, run, "drone=defender_v1")
+    export_controller(run, run / "controller.pt")
+    write_card(run, run / "controller.pt")
+    return run, summary
+
+
+@pytest.fixture(scope="module")
+def mixed(tmp_path_factory) -> ScenarioSet:
+    """Scenarios with both defender strategies, about half each."""
+    path = tmp_path_factory.mktemp("mixed")
+    write_scenario_set(spec_from(*SIZES, "scenario.strategy_mix={setpoints: 1, nn: 1}"), path)
+    return ScenarioSet.load(path)
+
+
+def test_route_state_observation_and_evasion_reward():
+    view = DroneView(
+        own_position=torch.tensor([[1.0, 2, 3]]),
+        own_velocity=torch.tensor([[0.5, 0, 0]]),
+        other_position=torch.tensor([[4.0, 2, 3]]),
+        other_velocity=torch.tensor([[0.0, 1, 0]]),
+        setpoint=torch.tensor([[1.0, 12, 3]]),
+    )
+    obs = OBSERVATIONS["route_state"]()(view)
+    assert obs.tolist() == [[0.5, 0, 0, 0, 10, 0, 3, 0, 0, -0.5, 1, 0]]
+
+    cfg = OmegaConf.load(CONF / "reward" / "evasion.yaml")
+    w = cfg.terms
+    reward = Reward(**cfg)
+    d = torch.tensor([30.0, 7.5, 1.0, 7.5])
+    captured = torch.tensor([False, False, True, False])
+    grounded = torch.tensor([False, False, False, True])
+    progress = torch.tensor([0.4, -0.2, 0.3, 0.0])
+    reached = torch.tensor([False, True, False, False])
+    ctx = RewardContext(
+        d, torch.ones(4, dtype=torch.bool), captured, grounded, cfg.distance_scale,
+        route_progress=progress, setpoint_reached=reached,
+    )  # fmt: skip
+    total, terms = reward(ctx)
+    near = (1 - 7.5 / cfg.distance_scale) ** 2
+    expected = [
+        w.route_progress * 0.4,  # far away: no threat
+        w.route_progress * -0.2 + w.setpoint_reached + w.proximity * near,
+        w.route_progress * 0.3 + w.proximity * (1 - 1 / cfg.distance_scale) ** 2 + w.capture,
+        w.proximity * near + w.ground_contact,
+    ]
+    assert total.tolist() == pytest.approx(expected)
+    assert w.capture < 0 and w.proximity < 0 and w.route_progress > 0
+
+
+def test_defender_env_reports_route_progress(scenarios):  # noqa: F811
+    env = make_env("drone=defender_v1", scenarios=scenarios, num_envs=4)
+    check_env_specs(env, seed=0)
+    td = env.reset()
+    # Fly straight at the setpoint: the progress term pays the metres gained.
+    p = td["positions"][:, 1]
+    target = env.routes[env.route, td["waypoint"].squeeze(-1)]
+    before = (target - p).norm(dim=-1)
+    action = ((target - p) / env.max_speed[:, 1:]).clamp(-1, 1)
+    out = env.step(td.set("action", action))["next"]
+    after = (target - out["positions"][:, 1]).norm(dim=-1)
+    w = env.reward_fn.weights["route_progress"]
+    assert out["reward_terms", "route_progress"].squeeze(-1).tolist() == pytest.approx(
+        (w * (before - after)).tolist(), abs=1e-5
+    )
+    assert (before > after).all()
+
+
+def test_controller_is_the_actors_deterministic_policy(defender_run):
+    run, _ = defender_run
+    state = load_checkpoint(run / "checkpoints" / "best.pt")
+    controller = load_controller(run / "controller.pt", "defender", "env.defender_network")
+    assert (run / "controller.pt").stat().st_size < (run / "checkpoints" / "best.pt").stat().st_size
+    g = torch.Generator().manual_seed(0)
+    view = DroneView(*(torch.randn(256, 3, generator=g) * 20 for _ in range(5)))
+    obs = controller.observation(view)
+    actor = actor_from_state(state, Bounded(-1.0, 1.0, shape=(3,)))
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        expected = actor(TensorDict(observation=obs, batch_size=[256]))["action"]
+    torch.testing.assert_close(controller(view), expected)
+
+
+def test_controller_of_the_wrong_drone_is_refused(defender_run, scenarios, tmp_path):  # noqa: F811
+    attacker = tiny_run(scenarios, tmp_path)["run_dir"]
+    with pytest.raises(
+        ConfigError, match=r"env.defender_network: the checkpoint flies the attacker"
+    ):
+        load_controller(f"{attacker}/checkpoints/best.pt", "defender", "env.defender_network")
+    with pytest.raises(ConfigError, match=r"env.defender_network: checkpoint: no file at"):
+        load_controller(tmp_path / "none.pt", "defender", "env.defender_network")
+
+
+@pytest.mark.slow
+def test_shipped_defender_is_what_its_card_says():
+    """The shipped network, flown on the test split of the set it was trained on, gives its
+    card's numbers, and evades a pure-pursuit attacker better than the setpoint follower."""
+    card = json.loads(shipped_path(SHIPPED_DEFENDER).with_suffix(".json").read_text())
+    state = load_checkpoint(shipped_path(SHIPPED_DEFENDER))
+    assert shipped_path(SHIPPED_DEFENDER).stat().st_size < 100_000  # the actor only
+    controller = load_controller(None, "defender", "env.defender_network")
+    assert isinstance(controller, NetworkController) and controller.observation.dim == 12
+    env = make_env("drone=defender_v1", "env.scenario_order=sequential", split="test", num_envs=500)
+    assert env.scenario_set.digest == card["scenario_digest"]
+    nn = evaluate(env, actor_from_state(state, env.action_spec[0]))
+    follower = evaluate(env, SetpointFollowerPolicy(env))
+    for name, res in (("nn", nn), ("setpoint_follower", follower)):
+        assert card["test"][name]["capture_rate"] == pytest.approx(res.capture_rate)
+        assert card["test"][name]["evasion_score"] == pytest.approx(res.evasion_score, abs=1e-6)
+    assert nn.capture_rate < follower.capture_rate
+    assert nn.route_fraction.mean() >= follower.route_fraction.mean()
+
+
+def test_nn_defenders_fly_the_network(mixed, defender_run, tmp_path):
+    run, _ = defender_run
+    # A network that always commands zero velocity: its defenders hover where they start.
+    state = load_checkpoint(run / "controller.pt")
+    state["actor"] = {k: torch.zeros_like(v) for k, v in state["actor"].items()}
+    save_checkpoint(
+        tmp_path / "hover.pt", {k: v for k, v in state.items() if k != "format_version"}
+    )
+
+    def rollout(network):
+        env = make_env(f"env.defender_network={network}", scenarios=mixed, split="val", num_envs=16)
+        env.set_seed(0)
+        return env, env.rollout(20, break_when_any_done=False)
+
+    env, hover = rollout(tmp_path / "hover.pt")
+    _, learned = rollout(run / "controller.pt")
+    nn = (mixed.split("val")["defender_strategy"] == STRATEGIES.index("nn"))[
+        hover["scenario_index"][:, 0, 0]
+    ]
+    assert nn.any() and (~nn).any()
+    start, end = hover["positions"][:, 0, 1], hover["next", "positions"][:, -1, 1]
+    moved = (end - start).norm(dim=-1)
+    assert (moved[nn] < 1e-5).all() and (moved[~nn] > 1.0).all()
+    # Setpoint followers do not depend on the network; network-flown defenders do.
+    d_hover, d_learned = hover["next", "positions"][:, :, 1], learned["next", "positions"][:, :, 1]
+    torch.testing.assert_close(d_hover[~nn], d_learned[~nn])
+    assert not torch.allclose(d_hover[nn], d_learned[nn])
+    check_env_specs(env, seed=0)
+
+
+def test_defender_trains_and_evaluates_through_the_cli(scenarios, defender_run, tmp_path):  # noqa: F811
+    run, summary = defender_run
+    assert summary["val_score"] == "evasion_score"
+    assert summary["reference_policy"] == "setpoint_follower"
+    assert 0.0 <= summary["test_route_fraction"] <= 1.0
+    res = cli(
+        *TINY, "drone=defender_v1", f"scenarios_dir={scenarios.path}", f"hydra.run.dir={tmp_path}"
+    )
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert res.stdout.strip().splitlines()[-1].startswith("test evasion score ")
+    card = json.loads((run / "controller.json").read_text())
+    assert card["role"] == "defender" and set(card["test"]) == {"nn", "setpoint_follower"}
+    assert card["test"]["nn"]["capture_rate"] == pytest.approx(summary["test_capture_rate"])
+    assert card["command"].startswith("python -m rlplat.agents.controller ")
+    ev = evaluate_run(run, policy="setpoint_follower", plots=False)
+    assert card["test"]["setpoint_follower"]["evasion_score"] == ev.summary["evasion_score"]
+    assert 0.0 < ev.summary["mean_route_fraction"] <= 1.0
+    rows = ev.rows
+    assert ev.summary["evasion_score"] == pytest.approx(sum(r["evasion"] for r in rows) / len(rows))
+    assert all(r["evasion"] == 0.0 for r in rows if r["captured"])
