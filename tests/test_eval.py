@@ -130,13 +130,15 @@ def test_hovering_defender_is_captured_at_the_computed_time(tmp_path):
     assert list(summary["by_speed_ratio"]) == ["1-2.5"]
 
 
-def test_setpoint_follower_flies_the_defender_like_the_scripted_one(scenarios):  # noqa: F811
+def test_setpoint_follower_flies_the_defender_like_the_scripted_one(tmp_path):
     """Attacker learns + pure pursuit policy == defender learns + setpoint-follower policy:
-    both fly pure pursuit against the route follower."""
+    both fly pure pursuit against the route follower (on setpoint-strategy scenarios)."""
+    write_scenario_set(spec_from(*SIZES, "scenario.strategy_mix.nn=0"), tmp_path)
+    setpoint_only = ScenarioSet.load(tmp_path)
 
     def fly(learner, policy):
         cfg = compose_config("train", [f"drone.learner={learner}", "env.time_limit=20"])
-        env = build_env(cfg, scenarios=scenarios, split="test", num_envs=16)
+        env = build_env(cfg, scenarios=setpoint_only, split="test", num_envs=16)
         return evaluate(env, policy(env))
 
     a = fly("attacker", PurePursuitPolicy)

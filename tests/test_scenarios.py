@@ -133,10 +133,12 @@ def test_gaussian_is_selectable_per_parameter(make_spec):
 
 
 def test_strategy_mix_weights(make_spec):
-    assert all((c.strategy == 0).all() for c in generate(make_spec(*SMALL)).values())
-    spec = make_spec(*SMALL, "scenario.strategy_mix.nn=3")  # setpoints 1 : nn 3
-    strategy = np.concatenate([c.strategy for c in generate(spec).values()])
-    assert abs((strategy == STRATEGIES.index("nn")).mean() - 0.75) < 0.06
+    only = make_spec(*SMALL, "scenario.strategy_mix.nn=0")
+    assert all((c.strategy == 0).all() for c in generate(only).values())
+    for overrides, share in (((), 0.5), (("scenario.strategy_mix.nn=1.5",), 0.75)):
+        spec = make_spec(*SMALL, *overrides)  # default setpoints 0.5 : nn 0.5, then 0.5 : 1.5
+        strategy = np.concatenate([c.strategy for c in generate(spec).values()])
+        assert abs((strategy == STRATEGIES.index("nn")).mean() - share) < 0.06
 
 
 def test_load_returns_tensors_matching_files(make_spec, tmp_path):
@@ -175,7 +177,7 @@ def test_load_returns_tensors_matching_files(make_spec, tmp_path):
         (("scenario.min_distance=60",), r"scenario.min_distance: 60.0 m cannot be met"),
         (
             COARSE,
-            r"scenario: 1700 scenarios requested \(n_train \+ n_val \+ n_test\) but only 256 "
+            r"scenario: 1700 scenarios requested \(n_train \+ n_val \+ n_test\) but only 512 "
             r"distinct combinations exist at the configured resolution",
         ),
         (("+scenario.strategy_mix.mixed=1",), r"unknown strategy 'mixed'; valid: setpoints, nn"),

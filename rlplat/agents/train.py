@@ -207,13 +207,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     # The scripted reference on the same validation split: the rate a policy has to beat.
     reference = evaluate(val_env, make_baseline(REFERENCE[role], val_env))
     metrics.log({f"reference/{k}": v for k, v in reference.summary().items()}, counters["frames"])
-    log.info(
-        "%s on the validation split: %s %.3f, capture rate %.3f",
-        REFERENCE[role],
-        score_name,
-        reference.score(role),
-        reference.capture_rate,
-    )
+    log.info("%s on the validation split: %s", REFERENCE[role], _outcome(reference, role))
 
     buffer = TensorDictReplayBuffer(
         storage=LazyTensorStorage(algo.buffer_size, device=device),
@@ -267,11 +261,9 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
             )
             save_checkpoint(ckpt_dir / "best.pt", payload())
         log.info(
-            "frames %d: validation %s %.3f, capture rate %.3f, mean return %.2f%s",
+            "frames %d: validation %s, mean return %.2f%s",
             counters["frames"],
-            score_name,
-            results.score(role),
-            results.capture_rate,
+            _outcome(results, role),
             results.mean_return,
             " (best)" if better else "",
         )
@@ -382,15 +374,21 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     plot_learning_curve(metrics.history, run_dir / "learning_curve.png")
     metrics.close()
     log.info(
-        "test %s %.3f, capture rate %.3f (%d scenarios), mean return %.2f; run directory %s",
-        score_name,
-        test.score(role),
-        test.capture_rate,
+        "test %s (%d scenarios), mean return %.2f; run directory %s",
+        _outcome(test, role),
         n_test,
         test.mean_return,
         run_dir,
     )
     return summary
+
+
+def _outcome(results: EpisodeResults, role: str) -> str:
+    """The capture rate, and a defender's evasion score before it, for a log line."""
+    text = f"capture rate {results.capture_rate:.3f}"
+    if SCORE_NAME[role] != "capture_rate":
+        text = f"{SCORE_NAME[role].replace('_', ' ')} {results.score(role):.3f}, {text}"
+    return text
 
 
 def _prefill(buffer, train_env, env, algo, keep) -> int:
