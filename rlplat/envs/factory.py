@@ -102,9 +102,10 @@ def build_env(
             "device",
         ),
     )
-    env_kwargs["defender_network"] = _defender_network(
+    network = _defender_network(
         env_kwargs.get("defender_network"), scenarios, split, c["drone"]["learner"]
     )
+    env_kwargs["defender_network"] = None if network is None else network.to(device)
     return PursuitEnv(
         scenarios=scenarios,
         dynamics=dynamics,
