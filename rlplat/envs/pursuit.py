@@ -94,7 +94,9 @@ class PursuitEnv(EnvBase):
         as one ``torch.compile`` program for this batch size: with the ``velocity`` model about
         3x the steps/s of the eager env at N=1 and 2x at N=4096 on a 2-core CPU, after a few
         seconds of compiling (~1 min for ``quadrotor``, which it does not speed up). Input
-        checks, resets and the tensordict plumbing stay eager.
+        checks, resets and the tensordict plumbing stay eager. ``defender_network`` flies the
+        defenders of ``nn`` scenarios when the attacker learns (the env factory loads
+        ``env.defender_network``, by default the shipped ``defender_v1``).
     """
 
     def __init__(
@@ -136,8 +138,9 @@ class PursuitEnv(EnvBase):
                 f"scenario split '{split}': {n_nn} scenarios ask for defender_strategy 'nn' but "
                 "no defender network is given (env.defender_network)"
             )
-        # Maps the defender's view to its action in [-1, 1] (see rlplat.agents.controller).
-        self.defender_network = defender_network if n_nn else None
+        # Maps the defender's view to its action in [-1, 1] (see rlplat.agents.controller);
+        # only a scripted defender of an `nn` scenario flies it.
+        self.defender_network = defender_network if n_nn and learner == "attacker" else None
         self.routes = scenarios.routes.to(self.device)
         self.dynamics = dynamics
         self.obs_fn, self.action_fn, self.reward_fn = observation, action, reward
