@@ -77,8 +77,11 @@ def main() -> None:
     parser.add_argument("--dynamics", nargs="+", default=["velocity", "quadrotor"])
     parser.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES))
     parser.add_argument("--seconds", type=float, default=3.0, help="time budget per row")
+    parser.add_argument(
+        "overrides", nargs="*", help="Hydra overrides, e.g. scenario.strategy_mix.nn=0"
+    )
     args = parser.parse_args()
-    scenarios = make_env(num_envs=1).scenario_set
+    scenarios = make_env(*args.overrides, num_envs=1).scenario_set
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, device {args.device}")
     print(
         f"{'dynamics':<10} {'mode':<9} {'N':>7} {'compile s':>10} {'step ms':>9} {'steps/s':>9} "
@@ -91,6 +94,7 @@ def main() -> None:
                 if args.device.startswith("cuda"):
                     torch.cuda.reset_peak_memory_stats()
                 env = make_env(
+                    *args.overrides,
                     f"dynamics={dyn}",
                     f"env.compile_step={MODES[mode]}",
                     num_envs=n,
