@@ -195,6 +195,8 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
         agent.load_state_dict(resume_state["agent"])
         counters.update(resume_state["counters"])
         best.update(resume_state["best"])
+        if "score" not in resume_state["best"]:  # written before scores were role-aware
+            best["score"] = best["capture_rate"]
         set_rng_state(resume_state["rng"])
         env.sampler.generator.set_state(resume_state["scenario_rng"])
         log.info("resuming %s at %d frames", run_dir, counters["frames"])
