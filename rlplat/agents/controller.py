@@ -137,11 +137,11 @@ def write_card(run_dir: str | Path, out: str | Path, ckpt: str = "best", split: 
     from rlplat.eval.run import evaluate_run, load_run_config
 
     role = load_run_config(run_dir).drone.learner
-    evaluations = {"nn" if role == "defender" else "learned": ("checkpoint", ckpt)}
-    evaluations.update({k: (k, ckpt) for k, b in BASELINES.items() if b.role == role})
+    policies = {"nn" if role == "defender" else "learned": "checkpoint"}
+    policies.update({k: k for k, b in BASELINES.items() if b.role == role})
     results = {}
-    for name, (policy, which) in evaluations.items():
-        summary = evaluate_run(run_dir, policy=policy, ckpt=which, split=split, plots=False).summary
+    for name, policy in policies.items():
+        summary = evaluate_run(run_dir, policy=policy, ckpt=ckpt, split=split, plots=False).summary
         results[name] = {k: summary.get(k) for k in CARD_KEYS}
     run_summary = Path(run_dir) / "summary.json"
     trained = json.loads(run_summary.read_text()) if run_summary.is_file() else {}

@@ -36,7 +36,7 @@ from rlplat.config import checked_threads
 from rlplat.envs.factory import build_env, resolve_scenarios
 from rlplat.errors import ConfigError
 from rlplat.eval.baselines import BASELINES, NoisyPolicy, make_baseline
-from rlplat.eval.episodes import EpisodeResults, evaluate
+from rlplat.eval.episodes import SCORE_NAME, EpisodeResults, evaluate
 from rlplat.io import atomic_write_text
 
 log = logging.getLogger(__name__)
@@ -56,10 +56,8 @@ TRANSITION_KEYS = (
 #: uniform random actions, or a classical controller of the learner's role (plus noise).
 INIT_POLICIES = ("random", *BASELINES)
 
-#: The scripted controller each learner is measured against on the validation split, and the
-#: name of the score validation maximises (:meth:`EpisodeResults.score`).
+#: The scripted controller each learner is measured against on the validation split.
 REFERENCE = {"attacker": "pure_pursuit", "defender": "setpoint_follower"}
-SCORE_NAME = {"attacker": "capture_rate", "defender": "evasion_score"}
 
 
 @dataclass(frozen=True)

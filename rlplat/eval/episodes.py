@@ -10,6 +10,9 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from rlplat.envs.pursuit import PursuitEnv
 
+#: The score a learner of each role maximises: an attribute of :class:`EpisodeResults`.
+SCORE_NAME = {"attacker": "capture_rate", "defender": "evasion_score"}
+
 
 @dataclass(frozen=True)
 class EpisodeResults:
@@ -55,16 +58,20 @@ class EpisodeResults:
         return self.returns.mean().item()
 
     @property
+    def evasion(self) -> torch.Tensor:
+        """(E,) the fraction of its route each defender flew without being caught: its route
+        fraction, 0 for a captured or crashed episode."""
+        return self.route_fraction.masked_fill(self.captured | self.grounded, 0.0)
+
+    @property
     def evasion_score(self) -> float:
-        """The defender's goal in one number: the mean fraction of its route it flew without
-        being caught (a captured or crashed episode scores 0)."""
-        lost = self.captured | self.grounded
-        return self.route_fraction.masked_fill(lost, 0.0).mean().item()
+        """The defender's goal in one number: the mean of :attr:`evasion`."""
+        return self.evasion.mean().item()
 
     def score(self, role: str) -> float:
-        """What a learner of ``role`` maximises: the attacker's capture rate, the defender's
-        evasion score; validation keeps the checkpoint with the highest."""
-        return self.capture_rate if role == "attacker" else self.evasion_score
+        """What a learner of ``role`` maximises (:data:`SCORE_NAME`); validation keeps the
+        checkpoint with the highest."""
+        return getattr(self, SCORE_NAME[role])
 
     def summary(self) -> dict[str, float]:
         """Scalars for a logger: capture rate, mean return and length, visibility, per-term

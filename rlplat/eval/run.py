@@ -222,7 +222,7 @@ def episode_rows(
     ids = scenarios.ids[split]
     directions = route_labels(routes)
     keys = ("scenario_index", "captured", "grounded", "time_to_capture", "length")
-    keys += ("min_distance", "visible_fraction", "route_fraction", "returns")
+    keys += ("min_distance", "visible_fraction", "route_fraction", "evasion", "returns")
     out = {k: getattr(results, k).tolist() for k in keys}
     terms = {k: v.tolist() for k, v in results.term_sums.items()}
     rows = []
@@ -247,7 +247,7 @@ def episode_rows(
             "min_distance_m": out["min_distance"][e],
             "visible_fraction": out["visible_fraction"][e],
             "route_fraction": out["route_fraction"][e],
-            "evasion": 0.0 if captured or out["grounded"][e] else out["route_fraction"][e],
+            "evasion": out["evasion"][e],
             "return": out["returns"][e],
             **{f"reward_{k}": v[e] for k, v in terms.items()},
         }
