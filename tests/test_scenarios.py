@@ -1,3 +1,4 @@
+import dataclasses
 import json
 import math
 import subprocess
@@ -14,6 +15,8 @@ from rlplat.scenarios import (
     SPLITS,
     STRATEGIES,
     ScenarioSet,
+    ScenarioSpec,
+    format_quality,
     generate,
     write_scenario_set,
 )
@@ -146,11 +149,17 @@ def test_load_returns_tensors_matching_files(make_spec, tmp_path):
     ss = ScenarioSet.load(tmp_path)
     test = ss.split("test")
     assert test.batch_size == torch.Size([90])
-    assert test["attacker_start"].shape == (90, 3) and test["attacker_start"].dtype == torch.float32
+    # Every entry carries the drone dimension, also for 1 vs 1.
+    assert ss.attackers == 1 and ss.defenders == 1
+    assert test["attacker_start"].shape == (90, 1, 3)
+    assert test["attacker_start"].dtype == torch.float32
+    assert test["defender_start"].shape == (90, 1, 3)
+    assert test["route"].shape == test["defender_strategy"].shape == (90, 1)
+    assert test["attacker_max_speed"].shape == test["defender_max_speed"].shape == (90, 1)
     first = json.loads((tmp_path / "test.jsonl").read_text().splitlines()[0])
     assert ss.ids["test"][0] == first["id"]
-    assert test["attacker_start"][0].tolist() == pytest.approx(first["attacker_start"])
-    assert STRATEGIES[test["defender_strategy"][0]] == first["defender_strategy"]
+    assert test["attacker_start"][0, 0].tolist() == pytest.approx(first["attacker_start"])
+    assert STRATEGIES[test["defender_strategy"][0, 0]] == first["defender_strategy"]
     assert ss.routes.shape == (4, 18, 3)
     assert ss.spec.seed == 0 and len(ss.digest) == 64
     with pytest.raises(ScenarioFileError, match="unknown split 'dev'"):
@@ -181,6 +190,17 @@ def test_load_returns_tensors_matching_files(make_spec, tmp_path):
             r"distinct combinations exist at the configured resolution",
         ),
         (("+scenario.strategy_mix.mixed=1",), r"unknown strategy 'mixed'; valid: setpoints, nn"),
+        (("scenario.attackers=0",), r"scenario.attackers: must be >= 1, got 0"),
+        (("scenario.attackers=1.5",), r"scenario.attackers: expected an integer, got 1.5"),
+        (("scenario.defenders=-2",), r"scenario.defenders: must be >= 1, got -2"),
+        (
+            ("scenario.min_separation=-1",),
+            r"scenario.min_separation: must be a finite distance >= 0 m, got -1.0",
+        ),
+        (
+            ("scenario.defender_spread.low=5", "scenario.defender_spread.high=-5"),
+            r"scenario.defender_spread: empty or inverted range \[low=5.0, high=-5.0\]",
+        ),
     ],
 )
 def test_bad_config_is_refused_with_one_line(make_spec, overrides, message):
@@ -253,3 +273,197 @@ def test_missing_file_and_other_schema_are_refused(make_spec, tmp_path):
         ScenarioSet.load(tmp_path)
     with pytest.raises(ScenarioFileError, match=r"manifest.json: missing file"):
         ScenarioSet.load(tmp_path / "nowhere")
+
+
+# k attackers vs m defenders -------------------------------------------------------------
+
+TEAMS = [(1, 1), (2, 1), (1, 2), (2, 2)]
+TINY = ("scenario.n_train=200", "scenario.n_val=40", "scenario.n_test=40")
+BASE_KEYS = [
+    "id",
+    "defender_start",
+    "attacker_start",
+    "route",
+    "defender_strategy",
+    "defender_max_speed",
+    "attacker_max_speed",
+]
+
+
+def _team(k: int, m: int, *overrides: str) -> tuple[str, ...]:
+    return (f"scenario.attackers={k}", f"scenario.defenders={m}", *overrides)
+
+
+def _drones(rec: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Start positions of a JSONL record: attackers (k, 3), defenders (m, 3)."""
+    att = [rec["attacker_start"], *(a["start"] for a in rec.get("extra_attackers", []))]
+    dfd = [rec["defender_start"], *(d["start"] for d in rec.get("extra_defenders", []))]
+    return np.array(att), np.array(dfd)
+
+
+@pytest.mark.parametrize(("k", "m"), TEAMS)
+def test_team_sets_meet_every_pairwise_constraint(make_spec, tmp_path, k, m):
+    # A wide same-team separation, so that constraint rejects candidates too.
+    spec = make_spec(*TINY, *_team(k, m, "scenario.min_separation=12"))
+    write_scenario_set(spec, tmp_path)
+    a, b, c = spec.vision_semi_axes
+    for split in SPLITS:
+        for line in (tmp_path / f"{split}.jsonl").read_text().splitlines():
+            rec = json.loads(line)
+            extra = [key for key in ("extra_attackers", "extra_defenders") if key in rec]
+            assert list(rec) == BASE_KEYS + extra  # a 1-vs-1 record has the historical keys
+            assert len(rec.get("extra_attackers", [])) == k - 1
+            assert len(rec.get("extra_defenders", [])) == m - 1
+            att, dfd = _drones(rec)
+            assert dfd[0, 0] == 0 and dfd[0, 1] == 0
+            assert (dfd[:, 2] >= 6).all() and (dfd[:, 2] <= 30).all()
+            assert (np.abs(dfd[1:, :2]) <= 15).all()  # defender_spread
+            for p in att:
+                assert p[2] >= spec.min_altitude - 1e-9
+                for d in dfd:
+                    off = d - p
+                    assert (off[0] / a) ** 2 + (off[1] / b) ** 2 + (off[2] / c) ** 2 <= 1 + 1e-6
+                    assert np.linalg.norm(off) >= spec.min_distance - 1e-6
+            for team in (att, dfd):
+                for i in range(len(team)):
+                    for j in range(i):
+                        assert np.linalg.norm(team[i] - team[j]) >= 12 - 1e-6
+            speeds = [rec["attacker_max_speed"], rec["defender_max_speed"]]
+            speeds += [x["max_speed"] for key in extra for x in rec[key]]
+            for v in speeds:
+                assert 1.0 <= v <= 5.0 and math.isclose(v * 10, round(v * 10), abs_tol=1e-6)
+            for x in rec.get("extra_defenders", []):
+                assert x["route"] in range(4) and x["defender_strategy"] in STRATEGIES
+
+
+@pytest.mark.parametrize(("k", "m"), TEAMS)
+def test_team_tensors_have_the_drone_dimension_and_match_the_files(make_spec, tmp_path, k, m):
+    write_scenario_set(make_spec(*TINY, *_team(k, m)), tmp_path)
+    ss = ScenarioSet.load(tmp_path)
+    assert (ss.attackers, ss.defenders) == (k, m)
+    for split in SPLITS:
+        t = ss.split(split)
+        records = [json.loads(x) for x in (tmp_path / f"{split}.jsonl").read_text().splitlines()]
+        n = len(records)
+        shapes = {
+            "attacker_start": (n, k, 3),
+            "defender_start": (n, m, 3),
+            "route": (n, m),
+            "defender_strategy": (n, m),
+            "attacker_max_speed": (n, k),
+            "defender_max_speed": (n, m),
+        }
+        assert {key: tuple(v.shape) for key, v in t.items()} == shapes
+        assert t["route"].dtype == t["defender_strategy"].dtype == torch.int64
+        assert t["attacker_start"].dtype == t["defender_max_speed"].dtype == torch.float32
+        expected = {key: [] for key in shapes}
+        for r in records:
+            att, dfd = r.get("extra_attackers", []), r.get("extra_defenders", [])
+            expected["attacker_start"].append([r["attacker_start"], *(x["start"] for x in att)])
+            expected["defender_start"].append([r["defender_start"], *(x["start"] for x in dfd)])
+            expected["route"].append([r["route"], *(x["route"] for x in dfd)])
+            strategies = [r["defender_strategy"], *(x["defender_strategy"] for x in dfd)]
+            expected["defender_strategy"].append([STRATEGIES.index(x) for x in strategies])
+            v_a = [r["attacker_max_speed"], *(x["max_speed"] for x in att)]
+            expected["attacker_max_speed"].append(v_a)
+            v_d = [r["defender_max_speed"], *(x["max_speed"] for x in dfd)]
+            expected["defender_max_speed"].append(v_d)
+        for key, value in expected.items():
+            assert t[key].numpy() == pytest.approx(np.array(value).reshape(shapes[key]), abs=1e-5)
+
+
+def test_team_set_same_seed_gives_byte_identical_files(make_spec, tmp_path):
+    spec = make_spec(*TINY, *_team(2, 2))
+    write_scenario_set(spec, tmp_path / "a")
+    write_scenario_set(spec, tmp_path / "b")
+    a, b = _files(tmp_path / "a"), _files(tmp_path / "b")
+    assert a == b and b"extra_attackers" in a["val.jsonl"] and b"extra_defenders" in a["val.jsonl"]
+    write_scenario_set(make_spec(*TINY, *_team(2, 2), "scenario.seed=1"), tmp_path / "c")
+    c = _files(tmp_path / "c")
+    assert all(a[f] != c[f] for f in a)
+
+
+def test_team_columns_and_combinations(make_spec):
+    spec = make_spec(*_team(2, 2))
+    assert spec.param_names == (
+        *PARAM_NAMES,
+        "attacker1_dx",
+        "attacker1_dy",
+        "attacker1_dz",
+        "attacker1_max_speed",
+        "defender1_dx",
+        "defender1_dy",
+        "defender1_z",
+        "defender1_max_speed",
+    )
+    assert spec.categorical_names == (
+        "route",
+        "defender_strategy",
+        "defender1_route",
+        "defender1_strategy",
+    )
+    by_name = dict(zip(spec.param_names, spec.param_specs, strict=True))
+    assert by_name["attacker1_dy"] == spec.params["attacker_dy"]
+    assert by_name["defender1_dx"] == by_name["defender1_dy"] == spec.defender_spread
+    assert by_name["defender1_z"] == spec.params["defender_z"]
+    assert make_spec().param_names == PARAM_NAMES
+    # Two grid levels per column: every column and every defender's route and strategy count.
+    counts = ("scenario.n_train=10", "scenario.n_val=0", "scenario.n_test=0")
+    coarse = (*COARSE[1:], "scenario.defender_spread.resolution=30", *counts)
+    assert make_spec(*coarse).max_combinations() == 2**6 * 4 * 2
+    assert make_spec(*coarse, *_team(2, 1)).max_combinations() == 2**10 * 4 * 2
+    assert make_spec(*coarse, *_team(1, 2)).max_combinations() == 2**10 * (4 * 2) ** 2
+
+
+def test_team_fields_are_optional_and_left_out_of_a_one_vs_one_config(make_spec):
+    spec = make_spec()
+    d = spec.to_dict()
+    assert not {"attackers", "defenders", "min_separation", "defender_spread"} & set(d)
+    assert ScenarioSpec.from_dict(d) == spec  # optional, with the defaults
+    assert (spec.attackers, spec.defenders, spec.min_separation) == (1, 1, 3.0)
+    team = make_spec(*_team(2, 1), "scenario.min_separation=4.5")
+    d = team.to_dict()
+    assert (d["attackers"], d["defenders"], d["min_separation"]) == (2, 1, 4.5)
+    assert d["defender_spread"]["low"] == -15.0
+    assert ScenarioSpec.from_dict(json.loads(json.dumps(d))) == team
+
+
+def test_team_quality_report_covers_the_extra_columns(make_spec, tmp_path):
+    spec = make_spec("scenario.n_train=300", "scenario.n_val=3", "scenario.n_test=60", *_team(2, 2))
+    manifest = write_scenario_set(spec, tmp_path)
+    q = manifest["quality"]
+    assert set(q["representativeness"]["ks"]) == set(spec.param_names)
+    assert set(q["representativeness"]["ks"]["defender1_z"]) == {
+        "train-val",
+        "train-test",
+        "val-test",
+    }
+    assert set(q["representativeness"]["chi2"]) == set(spec.categorical_names)
+    # Three val scenarios cannot fly all four routes: the extra defender's missing route and
+    # the empty bins of extra columns are listed.
+    missing = q["completeness"]["missing"]
+    assert not q["completeness"]["complete"]
+    assert any(x.startswith("val: defender1_route ") for x in missing)
+    assert any(x.startswith("val: attacker1_dx bin ") for x in missing)
+    assert any(x.startswith("val: defender1_max_speed bin ") for x in missing)
+    assert q["independence"]["independent"]
+    splits = generate(spec)
+    keys = np.concatenate([grid_keys(spec, c.values, c.route, c.strategy) for c in splits.values()])
+    assert keys.shape == (363, len(spec.param_names) + 4)
+    assert len(np.unique(keys, axis=0)) == len(keys)
+    text = format_quality(q)
+    assert "KS attacker1_max_speed" in text and "chi2 defender1_strategy" in text
+
+
+def test_two_vs_one_scenario_config_is_pursuit_with_two_attackers(make_spec):
+    two = make_spec("scenario=pursuit_2v1")
+    assert (two.attackers, two.defenders) == (2, 1)
+    assert dataclasses.replace(two, attackers=1) == make_spec()
+
+
+def test_an_empty_split_keeps_the_drone_dimension(make_spec, tmp_path):
+    spec = make_spec("scenario.n_train=50", "scenario.n_val=0", "scenario.n_test=5", *_team(2, 2))
+    manifest = write_scenario_set(spec, tmp_path)
+    assert manifest["quality"]["independence"]["independent"]
+    val = ScenarioSet.load(tmp_path).split("val")
+    assert val["attacker_start"].shape == (0, 2, 3) and val["route"].shape == (0, 2)

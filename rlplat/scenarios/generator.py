@@ -4,27 +4,29 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from itertools import combinations
 
 import numpy as np
 
 from rlplat.errors import ConfigError
-from rlplat.scenarios.spec import PARAM_NAMES, STRATEGIES, ScenarioSpec
+from rlplat.scenarios.spec import PARAM_NAMES, STRATEGIES, ParamSpec, ScenarioSpec
 
 log = logging.getLogger(__name__)
 
 SPLITS = ("train", "val", "test")
 _MAX_ROUNDS = 60
+_MAX_BATCH = 1 << 18  # most candidates per round grown for the rejection rate (k > 1 or m > 1)
 
 
 @dataclass(frozen=True)
 class SplitColumns:
-    """One split as columns.
+    """One split as columns (k attackers, m defenders).
 
     Attributes:
         ids: scenario ids, e.g. ``"train-000042"``.
-        values: (n, 6) float64, the continuous parameters in ``PARAM_NAMES`` order.
-        route: (n,) int64 route index.
-        strategy: (n,) int64 index into ``STRATEGIES``.
+        values: (n, n_params) float64, the continuous columns in ``spec.param_names`` order.
+        route: (n, m) int64 route index of every defender.
+        strategy: (n, m) int64 index into ``STRATEGIES`` of every defender.
     """
 
     ids: list[str]
@@ -37,60 +39,137 @@ class SplitColumns:
 
 
 def grid_keys(spec: ScenarioSpec, values: np.ndarray, route, strategy) -> np.ndarray:
-    """Identity of scenarios at the configured resolution: (n, 8) int64 grid indices."""
-    low = np.array([spec.params[n].low for n in PARAM_NAMES])
-    res = np.array([spec.params[n].resolution for n in PARAM_NAMES])
+    """Identity of scenarios at the configured resolution: (n, n_params + 2 m) int64.
+
+    The continuous columns' grid indices, then route and strategy of each defender in turn;
+    ``route`` and ``strategy`` are (n, m) or, for one defender, (n,).
+    """
+    low, res = _grid(spec)
     k = np.rint((values - low) / res).astype(np.int64)
-    return np.concatenate([k, np.asarray(route)[:, None], np.asarray(strategy)[:, None]], axis=1)
+    shape = (len(k), spec.defenders)
+    cat = np.stack([np.asarray(route).reshape(shape), np.asarray(strategy).reshape(shape)], 2)
+    return np.concatenate([k, cat.reshape(len(k), 2 * spec.defenders)], axis=1)
+
+
+def _grid(spec: ScenarioSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Low end and resolution of every continuous column: two (n_params,) float64."""
+    specs = spec.param_specs
+    return np.array([p.low for p in specs]), np.array([p.resolution for p in specs])
 
 
 def _values(spec: ScenarioSpec, keys: np.ndarray) -> np.ndarray:
-    low = np.array([spec.params[n].low for n in PARAM_NAMES])
-    res = np.array([spec.params[n].resolution for n in PARAM_NAMES])
-    return np.round(low + keys[:, : len(PARAM_NAMES)] * res, 6)
+    low, res = _grid(spec)
+    return np.round(low + keys[:, : len(low)] * res, 6)
+
+
+def _draw_param(p: ParamSpec, rng: np.random.Generator, m: int) -> np.ndarray:
+    if p.dist == "uniform":  # uniform over the grid values
+        return rng.integers(0, p.levels, m)
+    # gaussian, clipped to the range, snapped to the grid
+    x = np.clip(rng.normal(p.mean, p.std, m), p.low, p.high)
+    return np.clip(np.rint((x - p.low) / p.resolution), 0, p.levels - 1).astype(np.int64)
 
 
 def _draw(spec: ScenarioSpec, rng: np.random.Generator, m: int) -> np.ndarray:
-    """Draw ``m`` candidate grid keys (m, 8) from the configured distributions."""
-    cols = []
-    for name in PARAM_NAMES:
-        p = spec.params[name]
-        if p.dist == "uniform":  # uniform over the grid values
-            k = rng.integers(0, p.levels, m)
-        else:  # gaussian, clipped to the range, snapped to the grid
-            x = np.clip(rng.normal(p.mean, p.std, m), p.low, p.high)
-            k = np.clip(np.rint((x - p.low) / p.resolution), 0, p.levels - 1).astype(np.int64)
-        cols.append(k)
-    cols.append(rng.integers(0, len(spec.routes), m))
+    """Draw ``m`` candidate grid keys (m, n_params + 2 defenders) from the distributions.
+
+    The draws of the first attacker and defender come first (six columns, route, strategy),
+    then those of the extra drones, so a 1-vs-1 set draws exactly what it always did.
+    """
     levels = spec.strategy_levels
     w = np.array([spec.strategy_mix[STRATEGIES[i]] for i in levels], dtype=np.float64)
-    cols.append(np.asarray(levels)[rng.choice(len(levels), size=m, p=w / w.sum())])
-    return np.stack(cols, axis=1).astype(np.int64)
+
+    def categorical() -> list[np.ndarray]:
+        route = rng.integers(0, len(spec.routes), m)
+        return [route, np.asarray(levels)[rng.choice(len(levels), size=m, p=w / w.sum())]]
+
+    specs = spec.param_specs
+    base = [_draw_param(p, rng, m) for p in specs[: len(PARAM_NAMES)]]
+    cat = categorical()
+    extra = [_draw_param(p, rng, m) for p in specs[len(PARAM_NAMES) :]]
+    for _ in range(1, spec.defenders):
+        cat += categorical()
+    return np.stack(base + extra + cat, axis=1).astype(np.int64)
+
+
+def _drone_columns(
+    spec: ScenarioSpec, values: np.ndarray, team: str, attrs: tuple[str, ...], first: int = 0
+) -> np.ndarray:
+    """Columns ``{team}{i}_{attr}`` (no index for the first drone) of drones ``first..``:
+    (n, drones - first, len(attrs))."""
+    names = spec.param_names
+    count = spec.attackers if team == "attacker" else spec.defenders
+    idx = [[names.index(f"{team}{i or ''}_{a}") for a in attrs] for i in range(first, count)]
+    return values[:, np.asarray(idx, dtype=np.int64).reshape(count - first, len(attrs))]
+
+
+def start_positions(spec: ScenarioSpec, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Start positions from (n, n_params) column values: attackers (n, k, 3), defenders
+    (n, m, 3), m ENU.
+
+    The first defender starts at x = y = 0; attackers' x, y and z and extra defenders' x and y
+    are offsets from its start (the files round attackers' altitudes to 1e-6 m).
+    """
+    z = values[:, 0]
+    attackers = _drone_columns(spec, values, "attacker", ("dx", "dy", "dz")).copy()
+    attackers[..., 2] += z[:, None]
+    defenders = np.zeros((len(values), spec.defenders, 3))
+    defenders[:, 0, 2] = z
+    defenders[:, 1:] = _drone_columns(spec, values, "defender", ("dx", "dy", "z"), first=1)
+    return attackers, defenders
+
+
+def max_speeds(spec: ScenarioSpec, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Max speeds from (n, n_params) column values: attackers (n, k), defenders (n, m), m/s."""
+    return (
+        _drone_columns(spec, values, "attacker", ("max_speed",))[..., 0],
+        _drone_columns(spec, values, "defender", ("max_speed",))[..., 0],
+    )
 
 
 def feasible(spec: ScenarioSpec, values: np.ndarray) -> np.ndarray:
-    """Which rows of (n, 6) parameter values meet every start constraint: (n,) bool.
+    """Which rows of (n, n_params) column values meet every start constraint: (n,) bool.
 
-    The defender lies inside the attacker's vision ellipsoid, at least ``min_distance`` away, and
-    the attacker starts at or above ``min_altitude``.
+    For every attacker-defender pair the defender lies inside the attacker's vision ellipsoid
+    (world-axis aligned) and at least ``min_distance`` away; every attacker starts at or above
+    ``min_altitude``; every two drones of the same team start at least ``min_separation`` apart.
     """
-    z, dx, dy, dz = values[:, 0], values[:, 1], values[:, 2], values[:, 3]
+    offsets = _drone_columns(spec, values, "attacker", ("dx", "dy", "dz"))  # (n, k, 3)
+    attackers, defenders = start_positions(spec, values)
+    # Defender minus attacker for every pair, (n, k, m, 3); for the first defender exactly
+    # minus the drawn offset.
+    rel = defenders[:, None, :, :] - attackers[:, :, None, :]
+    rel[:, :, 0, :] = -offsets
     a, b, c = spec.vision_semi_axes
-    inside = (dx / a) ** 2 + (dy / b) ** 2 + (dz / c) ** 2 <= 1.0
-    far = np.sqrt(dx**2 + dy**2 + dz**2) >= spec.min_distance
-    return inside & far & (z + dz >= spec.min_altitude)
+    x, y, h = rel[..., 0], rel[..., 1], rel[..., 2]
+    inside = (x / a) ** 2 + (y / b) ** 2 + (h / c) ** 2 <= 1.0
+    far = np.sqrt(x**2 + y**2 + h**2) >= spec.min_distance
+    ok = (inside & far).all(axis=(1, 2))
+    ok &= (attackers[..., 2] >= spec.min_altitude).all(axis=1)
+    for pos in (offsets, defenders):  # same-team pairs (z offsets compare like altitudes)
+        for i, j in combinations(range(pos.shape[1]), 2):
+            d = pos[:, i] - pos[:, j]
+            ok &= np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2 + d[:, 2] ** 2) >= spec.min_separation
+    return ok
 
 
 def _distinct_feasible(spec: ScenarioSpec, rng: np.random.Generator) -> np.ndarray:
     """Draw until ``n_total`` distinct feasible keys are found, in draw order."""
     n = spec.n_total
-    keys = np.empty((0, len(PARAM_NAMES) + 2), dtype=np.int64)
-    drawn = 0
+    keys = np.empty((0, len(spec.param_names) + 2 * spec.defenders), dtype=np.int64)
+    drawn = accepted = 0
+    teams = spec.attackers > 1 or spec.defenders > 1
     for _ in range(_MAX_ROUNDS):
-        m = max(1024, int(2.5 * (n - len(keys))))
+        # 1 vs 1 keeps its batch sizes (same draws, same files); with more drones, whose pairwise
+        # constraints reject far more candidates, the batch grows with the rejection so far.
+        need = 2.5 * (n - len(keys))
+        m = max(1024, int(need))
+        if teams and drawn:
+            m = max(m, min(int(need / max(accepted / drawn, 1e-3)), _MAX_BATCH))
         cand = _draw(spec, rng, m)
         drawn += m
         cand = cand[feasible(spec, _values(spec, cand))]
+        accepted += len(cand)
         keys = np.concatenate([keys, cand])
         _, first = np.unique(keys, axis=0, return_index=True)
         keys = keys[np.sort(first)]
@@ -121,8 +200,11 @@ def generate(spec: ScenarioSpec) -> dict[str, SplitColumns]:
     """Generate the train/val/test splits of ``spec`` (deterministic in ``spec.seed``)."""
     rng = np.random.default_rng(spec.seed)
     keys = _distinct_feasible(spec, rng)
-    strata = keys[:, -2] * len(STRATEGIES) + keys[:, -1]
-    labels = _stratified_labels(spec, strata, rng)
+    n_cont = len(spec.param_names)
+    # Strata: the combination of every defender's route and strategy (for one defender the
+    # order of route * len(STRATEGIES) + strategy).
+    _, strata = np.unique(keys[:, n_cont:], axis=0, return_inverse=True)
+    labels = _stratified_labels(spec, strata.reshape(-1), rng)
     out = {}
     for i, split in enumerate(SPLITS):
         rows = np.flatnonzero(labels == i)
@@ -131,7 +213,7 @@ def generate(spec: ScenarioSpec) -> dict[str, SplitColumns]:
         out[split] = SplitColumns(
             ids=[f"{split}-{j:06d}" for j in range(len(rows))],
             values=_values(spec, k),
-            route=k[:, -2].copy(),
-            strategy=k[:, -1].copy(),
+            route=k[:, n_cont::2].copy(),
+            strategy=k[:, n_cont + 1 :: 2].copy(),
         )
     return out

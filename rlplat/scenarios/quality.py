@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from itertools import combinations
 from typing import Any
 
@@ -9,15 +10,16 @@ import numpy as np
 from scipy import stats
 
 from rlplat.scenarios.generator import SplitColumns, grid_keys
-from rlplat.scenarios.spec import PARAM_NAMES, STRATEGIES, ScenarioSpec
+from rlplat.scenarios.spec import STRATEGIES, ScenarioSpec
 
 
 def quality_report(spec: ScenarioSpec, splits: dict[str, SplitColumns]) -> dict[str, Any]:
     """Measure the three quality criteria of a generated set.
 
     Returns a JSON-ready dict with ``completeness`` (levels and bins absent from a split),
-    ``representativeness`` (two-sample KS per continuous parameter and chi-square per
-    categorical, for each pair of non-empty splits) and ``independence`` (duplicate counts).
+    ``representativeness`` (two-sample KS per continuous column, ``spec.param_names``, and
+    chi-square per categorical column, ``spec.categorical_names``, for each pair of non-empty
+    splits) and ``independence`` (duplicate counts over all columns).
     """
     full = {s: c for s, c in splits.items() if len(c)}
     pairs = list(combinations(full, 2))
@@ -28,29 +30,40 @@ def quality_report(spec: ScenarioSpec, splits: dict[str, SplitColumns]) -> dict[
                 name: {
                     f"{a}-{b}": _ks(full[a].values[:, i], full[b].values[:, i]) for a, b in pairs
                 }
-                for i, name in enumerate(PARAM_NAMES)
+                for i, name in enumerate(spec.param_names)
             },
             "chi2": {
-                cat: {
-                    f"{a}-{b}": _chi2(getattr(full[a], col), getattr(full[b], col))
-                    for a, b in pairs
-                }
-                for cat, col in (("route", "route"), ("defender_strategy", "strategy"))
+                name: {f"{a}-{b}": _chi2(get(full[a]), get(full[b])) for a, b in pairs}
+                for name, get, _ in _categoricals(spec)
             },
         },
         "independence": _independence(spec, splits),
     }
 
 
+_Getter = Callable[[SplitColumns], np.ndarray]
+
+
+def _categoricals(spec: ScenarioSpec) -> list[tuple[str, _Getter, dict[int, str]]]:
+    """Every categorical column in ``categorical_names`` order: its name, a getter of its (n,)
+    values and its configured levels (value -> label)."""
+    routes = {r: str(r) for r in range(len(spec.routes))}
+    strategies = {i: STRATEGIES[i] for i in spec.strategy_levels}
+    names = iter(spec.categorical_names)
+    out = []
+    for j in range(spec.defenders):
+        out.append((next(names), lambda c, j=j: c.route[:, j], routes))
+        out.append((next(names), lambda c, j=j: c.strategy[:, j], strategies))
+    return out
+
+
 def _completeness(spec: ScenarioSpec, splits: dict[str, SplitColumns]) -> dict[str, Any]:
     missing = []
     for split, cols in splits.items():
-        for r in sorted(set(range(len(spec.routes))) - set(cols.route.tolist())):
-            missing.append(f"{split}: route {r}")
-        for s in sorted(set(spec.strategy_levels) - set(cols.strategy.tolist())):
-            missing.append(f"{split}: defender_strategy {STRATEGIES[s]}")
-        for i, name in enumerate(PARAM_NAMES):
-            p = spec.params[name]
+        for name, get, levels in _categoricals(spec):
+            for v in sorted(set(levels) - set(get(cols).tolist())):
+                missing.append(f"{split}: {name} {levels[v]}")
+        for i, (name, p) in enumerate(zip(spec.param_names, spec.param_specs, strict=True)):
             edges = np.linspace(p.low, p.high, spec.quality_bins + 1)
             counts, _ = np.histogram(cols.values[:, i], bins=edges)
             for b in np.flatnonzero(counts == 0):
@@ -99,6 +112,7 @@ def format_quality(quality: dict[str, Any]) -> str:
         lines.append(f"  ... and {len(comp['missing']) - 20} more")
     rep = quality["representativeness"]
     pairs = sorted({p for v in rep["ks"].values() for p in v})
+    width = max([18, *(len(n) for t in (rep["ks"], rep["chi2"]) for n in t)])  # column names
     header = f"{'representativeness':<22}" + "".join(f"{p:>22}" for p in pairs)
     lines += [header, f"{'  (stat / p-value)':<22}" + "".join(f"{'':>22}" for _ in pairs)]
     for test, table in (("KS", rep["ks"]), ("chi2", rep["chi2"])):
@@ -106,7 +120,7 @@ def format_quality(quality: dict[str, Any]) -> str:
             cells = "".join(
                 f"{by_pair[p]['statistic']:>11.4f} / {by_pair[p]['pvalue']:<8.4f}" for p in pairs
             )
-            lines.append(f"  {test} {name:<18}{cells}")
+            lines.append(f"  {test} {name:<{width}}{cells}")
     ind = quality["independence"]
     lines.append(
         f"independence      {'independent' if ind['independent'] else 'DUPLICATES'}  "

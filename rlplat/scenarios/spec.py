@@ -10,7 +10,8 @@ from typing import Any, Literal
 
 from rlplat.errors import ConfigError
 
-#: Continuous parameters of one pursuit scenario, in file and tensor order.
+#: Continuous parameters of the first attacker and defender, in file and column order (the
+#: columns of extra drones follow, see ``ScenarioSpec.param_names``).
 PARAM_NAMES = (
     "defender_z",
     "attacker_dx",
@@ -50,9 +51,25 @@ class ParamSpec:
         return math.floor((self.high - self.low) / self.resolution + 1e-9) + 1
 
 
+#: Default ``defender_spread``: x and y offset of an extra defender from the first one, m.
+DEFAULT_DEFENDER_SPREAD = ParamSpec(low=-15.0, high=15.0, resolution=0.5)
+#: Fields ``from_dict`` accepts but does not require, and ``to_dict`` omits for 1 vs 1.
+TEAM_FIELDS = ("attackers", "defenders", "min_separation", "defender_spread")
+
+
 @dataclass(frozen=True)
 class ScenarioSpec:
-    """Everything that defines a scenario set (see ``conf/scenario/pursuit.yaml``)."""
+    """Everything that defines a scenario set (see ``conf/scenario/pursuit.yaml``).
+
+    A scenario has ``attackers`` (k) attackers and ``defenders`` (m) defenders. Its continuous
+    columns (``param_names``) are the six of ``PARAM_NAMES`` for the first attacker and defender,
+    then per extra attacker i = 1..k-1 ``attacker{i}_dx``, ``attacker{i}_dy``, ``attacker{i}_dz``
+    (offset from the first defender's start, drawn from the ``attacker_d*`` specs) and
+    ``attacker{i}_max_speed``, then per extra defender j = 1..m-1 ``defender{j}_dx`` and
+    ``defender{j}_dy`` (offset from the first defender's start, ``defender_spread``),
+    ``defender{j}_z`` (absolute altitude, ``defender_z``) and ``defender{j}_max_speed``. Its
+    categorical columns (``categorical_names``) are the route and strategy of every defender.
+    """
 
     seed: int
     n_train: int
@@ -65,6 +82,43 @@ class ScenarioSpec:
     params: dict[str, ParamSpec]
     strategy_mix: dict[str, float]
     routes: tuple[tuple[tuple[float, float, float], ...], ...]
+    attackers: int = 1
+    defenders: int = 1
+    min_separation: float = 3.0
+    defender_spread: ParamSpec = DEFAULT_DEFENDER_SPREAD
+
+    @property
+    def param_names(self) -> tuple[str, ...]:
+        """Names of the continuous columns, in column order (``PARAM_NAMES`` first)."""
+        names = list(PARAM_NAMES)
+        for i in range(1, self.attackers):
+            names += [f"attacker{i}_{a}" for a in ("dx", "dy", "dz", "max_speed")]
+        for j in range(1, self.defenders):
+            names += [f"defender{j}_{a}" for a in ("dx", "dy", "z", "max_speed")]
+        return tuple(names)
+
+    @property
+    def param_specs(self) -> tuple[ParamSpec, ...]:
+        """The ParamSpec each continuous column is drawn from, in ``param_names`` order."""
+        return tuple(
+            self.params[n] if n in self.params else self._extra_spec(n) for n in self.param_names
+        )
+
+    def _extra_spec(self, name: str) -> ParamSpec:
+        team, attr = name.split("_", 1)
+        if team.startswith("attacker"):
+            return self.params[f"attacker_{attr}"]
+        if attr in ("dx", "dy"):
+            return self.defender_spread
+        return self.params[f"defender_{attr}"]
+
+    @property
+    def categorical_names(self) -> tuple[str, ...]:
+        """Names of the categorical columns: route and strategy of every defender, in order."""
+        names = ["route", "defender_strategy"]
+        for j in range(1, self.defenders):
+            names += [f"defender{j}_route", f"defender{j}_strategy"]
+        return tuple(names)
 
     @property
     def counts(self) -> dict[str, int]:
@@ -82,16 +136,23 @@ class ScenarioSpec:
 
     def max_combinations(self) -> int:
         """Distinct parameter combinations on the grid (an upper bound of the feasible ones)."""
-        n = len(self.routes) * len(self.strategy_levels)
-        for p in self.params.values():
+        n = (len(self.routes) * len(self.strategy_levels)) ** self.defenders
+        for p in self.param_specs:
             n *= p.levels
         return n
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain, JSON-ready form (the ``config`` of a manifest)."""
+        """Plain, JSON-ready form (the ``config`` of a manifest).
+
+        For 1 vs 1 the team fields (``TEAM_FIELDS``) are left out, so a 1-vs-1 manifest is the
+        one written before they existed.
+        """
         d = dataclasses.asdict(self)
         d["vision_semi_axes"] = list(self.vision_semi_axes)
         d["routes"] = [[list(p) for p in r] for r in self.routes]
+        if self.attackers == 1 and self.defenders == 1:
+            for k in TEAM_FIELDS:
+                del d[k]
         return d
 
     @classmethod
@@ -104,7 +165,7 @@ class ScenarioSpec:
         raw = dict(raw)
         fields = {f.name for f in dataclasses.fields(cls)}
         _no_unknown(raw, fields, where)
-        missing = sorted(fields - raw.keys())
+        missing = sorted(fields - set(TEAM_FIELDS) - raw.keys())
         if missing:
             raise ConfigError(f"{where}: missing field(s) {', '.join(missing)}")
 
@@ -158,6 +219,27 @@ class ScenarioSpec:
                 f"got {[len(r) for r in routes]}"
             )
 
+        team = {k: _int(raw.get(k, 1), f"{where}.{k}") for k in ("attackers", "defenders")}
+        for k, v in team.items():
+            if v < 1:
+                raise ConfigError(f"{where}.{k}: must be >= 1, got {v}")
+        separation = raw.get("min_separation", 3.0)
+        try:
+            separation = float(separation)
+        except (TypeError, ValueError):
+            raise ConfigError(
+                f"{where}.min_separation: expected a number, got {separation!r}"
+            ) from None
+        if not (math.isfinite(separation) and separation >= 0):
+            raise ConfigError(
+                f"{where}.min_separation: must be a finite distance >= 0 m, got {separation}"
+            )
+        spread = raw.get("defender_spread")
+        if spread is None:
+            spread = DEFAULT_DEFENDER_SPREAD
+        else:
+            spread = _param(spread, f"{where}.defender_spread")
+
         spec = cls(
             seed=_int(raw["seed"], f"{where}.seed"),
             vision_semi_axes=axes,
@@ -167,7 +249,10 @@ class ScenarioSpec:
             params=params,
             strategy_mix=mix,
             routes=routes,
+            min_separation=separation,
+            defender_spread=spread,
             **counts,
+            **team,
         )
         available = spec.max_combinations()
         if spec.n_total > available:
@@ -201,6 +286,8 @@ def _floats(v: Any, where: str, n: int) -> tuple[float, ...]:
 
 
 def _param(raw: Any, where: str) -> ParamSpec:
+    if not isinstance(raw, Mapping):
+        raise ConfigError(f"{where}: expected a mapping of low, high, resolution, ..., got {raw!r}")
     raw = dict(raw)
     _no_unknown(raw, {f.name for f in dataclasses.fields(ParamSpec)}, where)
     low, high = _floats([raw.get("low"), raw.get("high")], f"{where}.low/high", 2)

@@ -14,7 +14,13 @@ from tensordict import TensorDict
 
 from rlplat.errors import ScenarioFileError
 from rlplat.io import atomic_write_bytes, atomic_write_text, sha256_bytes
-from rlplat.scenarios.generator import SPLITS, SplitColumns, generate
+from rlplat.scenarios.generator import (
+    SPLITS,
+    SplitColumns,
+    generate,
+    max_speeds,
+    start_positions,
+)
 from rlplat.scenarios.quality import quality_report
 from rlplat.scenarios.spec import STRATEGIES, ScenarioSpec
 
@@ -24,39 +30,72 @@ SCHEMA_VERSION = 1
 MANIFEST = "manifest.json"
 
 
-def _jsonl(cols: SplitColumns) -> bytes:
+def _jsonl(spec: ScenarioSpec, cols: SplitColumns) -> bytes:
+    """One JSON record per scenario: the first attacker and defender at the top level, then
+    ``extra_attackers`` (k > 1) and ``extra_defenders`` (m > 1)."""
+    attackers, defenders = start_positions(spec, cols.values)
+    v_att, v_def = max_speeds(spec, cols.values)
+    attackers = [[[x, y, round(z, 6)] for x, y, z in row] for row in attackers.tolist()]
+    defenders = defenders.tolist()
+    v_att, v_def = v_att.tolist(), v_def.tolist()
+    route, strategy = cols.route.tolist(), cols.strategy.tolist()
     lines = []
     for i, sid in enumerate(cols.ids):
-        z, dx, dy, dz, vd, va = cols.values[i].tolist()
         rec = {
             "id": sid,
-            "defender_start": [0.0, 0.0, z],
-            "attacker_start": [dx, dy, round(z + dz, 6)],
-            "route": int(cols.route[i]),
-            "defender_strategy": STRATEGIES[cols.strategy[i]],
-            "defender_max_speed": vd,
-            "attacker_max_speed": va,
+            "defender_start": defenders[i][0],
+            "attacker_start": attackers[i][0],
+            "route": route[i][0],
+            "defender_strategy": STRATEGIES[strategy[i][0]],
+            "defender_max_speed": v_def[i][0],
+            "attacker_max_speed": v_att[i][0],
         }
+        if spec.attackers > 1:
+            rec["extra_attackers"] = [
+                {"start": p, "max_speed": v}
+                for p, v in zip(attackers[i][1:], v_att[i][1:], strict=True)
+            ]
+        if spec.defenders > 1:
+            rec["extra_defenders"] = [
+                {"start": p, "route": r, "defender_strategy": STRATEGIES[s], "max_speed": v}
+                for p, r, s, v in zip(
+                    defenders[i][1:], route[i][1:], strategy[i][1:], v_def[i][1:], strict=True
+                )
+            ]
         lines.append(json.dumps(rec))
     return "".join(line + "\n" for line in lines).encode("utf-8")
 
 
-def _to_tensors(records: list[dict[str, Any]]) -> TensorDict:
-    n = len(records)
+def _to_tensors(records: list[dict[str, Any]], spec: ScenarioSpec, where: Path) -> TensorDict:
+    """Records of a k-vs-m set as tensors with batch size [n] and a drone dimension."""
+    n, k, m = len(records), spec.attackers, spec.defenders
+    a_start, a_speed, d_start, d_speed, route, strategy = ([] for _ in range(6))
+    for line, r in enumerate(records, 1):
+        extra_a, extra_d = r.get("extra_attackers", []), r.get("extra_defenders", [])
+        if len(extra_a) != k - 1 or len(extra_d) != m - 1:
+            raise ScenarioFileError(
+                f"{where}:{line}: {1 + len(extra_a)} attacker(s) and {1 + len(extra_d)} "
+                f"defender(s), the manifest's config has {k} and {m}"
+            )
+        a_start.append([r["attacker_start"], *(a["start"] for a in extra_a)])
+        a_speed.append([r["attacker_max_speed"], *(a["max_speed"] for a in extra_a)])
+        d_start.append([r["defender_start"], *(d["start"] for d in extra_d)])
+        d_speed.append([r["defender_max_speed"], *(d["max_speed"] for d in extra_d)])
+        route.append([r["route"], *(d["route"] for d in extra_d)])
+        names = [r["defender_strategy"], *(d["defender_strategy"] for d in extra_d)]
+        strategy.append([STRATEGIES.index(s) for s in names])
 
-    def col(key: str, dtype: torch.dtype, shape=()) -> torch.Tensor:
-        return torch.tensor([r[key] for r in records], dtype=dtype).reshape(n, *shape)
+    def tensor(rows: list, dtype: torch.dtype, *shape: int) -> torch.Tensor:
+        return torch.tensor(rows, dtype=dtype).reshape(n, *shape)
 
     return TensorDict(
         {
-            "defender_start": col("defender_start", torch.float32, (3,)),
-            "attacker_start": col("attacker_start", torch.float32, (3,)),
-            "route": col("route", torch.int64),
-            "defender_strategy": torch.tensor(
-                [STRATEGIES.index(r["defender_strategy"]) for r in records], dtype=torch.int64
-            ),
-            "defender_max_speed": col("defender_max_speed", torch.float32),
-            "attacker_max_speed": col("attacker_max_speed", torch.float32),
+            "defender_start": tensor(d_start, torch.float32, m, 3),
+            "attacker_start": tensor(a_start, torch.float32, k, 3),
+            "route": tensor(route, torch.int64, m),
+            "defender_strategy": tensor(strategy, torch.int64, m),
+            "defender_max_speed": tensor(d_speed, torch.float32, m),
+            "attacker_max_speed": tensor(a_speed, torch.float32, k),
         },
         batch_size=[n],
     )
@@ -64,17 +103,19 @@ def _to_tensors(records: list[dict[str, Any]]) -> TensorDict:
 
 @dataclass
 class ScenarioSet:
-    """A loaded scenario set.
+    """A loaded scenario set of k attackers and m defenders per scenario.
 
     Attributes:
         path: directory it was loaded from.
         manifest: the parsed ``manifest.json``.
         spec: the generator spec it was made with.
         ids: per split, the scenario ids in file order.
-        splits: per split, a TensorDict with batch size ``[n]``: ``defender_start`` and
-            ``attacker_start`` (n, 3) float32 m ENU, ``route`` (n,) int64,
-            ``defender_strategy`` (n,) int64 index into ``STRATEGIES``, ``defender_max_speed``
-            and ``attacker_max_speed`` (n,) float32 m/s.
+        splits: per split, a TensorDict with batch size ``[n]`` whose entries always carry the
+            drone dimension (also for 1 vs 1; index 0 is the first attacker / defender):
+            ``attacker_start`` (n, k, 3) and ``defender_start`` (n, m, 3) float32 m ENU,
+            ``route`` (n, m) int64, ``defender_strategy`` (n, m) int64 index into
+            ``STRATEGIES``, ``attacker_max_speed`` (n, k) and ``defender_max_speed`` (n, m)
+            float32 m/s.
         routes: (n_routes, n_setpoints, 3) float32 route setpoints, m ENU.
     """
 
@@ -84,6 +125,20 @@ class ScenarioSet:
     ids: dict[str, list[str]]
     splits: dict[str, TensorDict]
     routes: torch.Tensor
+
+    @property
+    def attackers(self) -> int:
+        """Attackers per scenario, k (from the spec; from the tensors of a set without one)."""
+        if self.spec is not None:
+            return self.spec.attackers
+        return next(iter(self.splits.values()))["attacker_start"].shape[1]
+
+    @property
+    def defenders(self) -> int:
+        """Defenders per scenario, m (from the spec; from the tensors of a set without one)."""
+        if self.spec is not None:
+            return self.spec.defenders
+        return next(iter(self.splits.values()))["defender_start"].shape[1]
 
     @property
     def digest(self) -> str:
@@ -112,6 +167,7 @@ class ScenarioSet:
                 f"{path / MANIFEST}: schema_version {version!r} is not supported "
                 f"(this rlplat reads {SCHEMA_VERSION})"
             )
+        spec = ScenarioSpec.from_dict(manifest["config"], where=f"{path / MANIFEST}: config")
         ids, splits = {}, {}
         for split in SPLITS:
             entry = manifest["splits"][split]
@@ -123,8 +179,7 @@ class ScenarioSet:
                 )
             records = [json.loads(line) for line in data.decode("utf-8").splitlines()]
             ids[split] = [r["id"] for r in records]
-            splits[split] = _to_tensors(records)
-        spec = ScenarioSpec.from_dict(manifest["config"], where=f"{path / MANIFEST}: config")
+            splits[split] = _to_tensors(records, spec, path / entry["file"])
         routes = torch.tensor(spec.routes, dtype=torch.float32)
         return cls(path, manifest, spec, ids, splits, routes)
 
@@ -143,7 +198,7 @@ def write_scenario_set(spec: ScenarioSpec, out_dir: str | os.PathLike) -> dict[s
     the manifest last, so an interrupted write never leaves a set that loads.
     """
     splits = generate(spec)
-    files = {split: _jsonl(cols) for split, cols in splits.items()}
+    files = {split: _jsonl(spec, cols) for split, cols in splits.items()}
     manifest = {
         "schema_version": SCHEMA_VERSION,
         "seed": spec.seed,
