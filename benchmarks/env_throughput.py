@@ -8,9 +8,11 @@ adds on top of the simulator. Modes: ``eager`` (the default env) and ``compiled`
 (``env.compile_step=true``: the step's numerical work as one ``torch.compile`` program; the
 ``compile s`` column is the time of the first steps, compilation included). The actions are
 drawn from the action spec before timing (64 of them, cycled), so a policy's cost is not
-counted; done envs are reset as a collector would.
+counted; done envs are reset as a collector would. ``--teams 1v1 2v1`` runs every row for each
+team size (k attackers vs m defenders, a scenario set of each); ``agent-steps/s`` counts env
+steps (one per pursuit), ``drone-steps/s`` every learning drone's step.
 
-    .venv/bin/python benchmarks/env_throughput.py [--device cuda] [--sizes 1 4096]
+    .venv/bin/python benchmarks/env_throughput.py [--device cuda] [--sizes 1 4096] [--teams 1v1 2v1]
 """
 
 from __future__ import annotations
@@ -43,16 +45,16 @@ def sync(device: str) -> None:
 
 def time_steps(env, steps: int, device: str) -> tuple[float, float]:
     """Seconds of the 5 warm-up steps (compilation included) and per step after them."""
-    actions = [env.action_spec.rand() for _ in range(64)]
+    actions = [env.full_action_spec.rand() for _ in range(64)]
     td = env.reset()
     t0 = time.perf_counter()
     for i in range(5):
-        td = env.step_and_maybe_reset(td.set("action", actions[i]))[1]
+        td = env.step_and_maybe_reset(td.update(actions[i]))[1]
     sync(device)
     warmup = time.perf_counter() - t0
     t0 = time.perf_counter()
     for i in range(steps):
-        td = env.step_and_maybe_reset(td.set("action", actions[i % len(actions)]))[1]
+        td = env.step_and_maybe_reset(td.update(actions[i % len(actions)]))[1]
     sync(device)
     return warmup, (time.perf_counter() - t0) / steps
 
@@ -77,41 +79,51 @@ def main() -> None:
     parser.add_argument("--dynamics", nargs="+", default=["velocity", "quadrotor"])
     parser.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES))
     parser.add_argument("--seconds", type=float, default=3.0, help="time budget per row")
+    parser.add_argument("--teams", nargs="+", default=["1v1"], help="KvM: k attackers, m defenders")
     parser.add_argument(
         "overrides", nargs="*", help="Hydra overrides, e.g. scenario.strategy_mix.nn=0"
     )
     args = parser.parse_args()
-    scenarios = make_env(*args.overrides, num_envs=1).scenario_set
+    teams = {}
+    for team in args.teams:
+        k, _, m = team.partition("v")
+        if not (k.isdigit() and m.isdigit()):
+            parser.error(f"--teams: expected KvM such as 2v1, got {team!r}")
+        sizes = (f"scenario.attackers={k}", f"scenario.defenders={m}")
+        teams[team] = (sizes, make_env(*args.overrides, *sizes, num_envs=1).scenario_set)
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, device {args.device}")
     print(
-        f"{'dynamics':<10} {'mode':<9} {'N':>7} {'compile s':>10} {'step ms':>9} {'steps/s':>9} "
-        f"{'agent-steps/s':>14} {'physics ms':>11} {'env/physics':>12} {'peak RSS MiB':>13} "
-        f"{'peak GPU MiB':>13}"
+        f"{'team':<5} {'dynamics':<10} {'mode':<9} {'N':>7} {'compile s':>10} {'step ms':>9} "
+        f"{'steps/s':>9} {'agent-steps/s':>14} {'drone-steps/s':>14} {'physics ms':>11} "
+        f"{'env/physics':>12} {'peak RSS MiB':>13} {'peak GPU MiB':>13}"
     )
-    for dyn in args.dynamics:
-        for mode in args.modes:
-            for n in args.sizes:
-                if args.device.startswith("cuda"):
-                    torch.cuda.reset_peak_memory_stats()
-                env = make_env(
-                    *args.overrides,
-                    f"dynamics={dyn}",
-                    f"env.compile_step={MODES[mode]}",
-                    num_envs=n,
-                    scenarios=scenarios,
-                    device=args.device,
-                )
-                warmup, probe = time_steps(env, 3, args.device)
-                steps = max(10, int(args.seconds / probe))
-                step_s = time_steps(env, steps, args.device)[1]
-                phys_s = time_physics(env, max(10, steps // 2), args.device)
-                compile_s = f"{warmup:.1f}" if mode == "compiled" else "-"
-                print(
-                    f"{dyn:<10} {mode:<9} {n:>7} {compile_s:>10} {step_s * 1e3:>9.3f} "
-                    f"{1 / step_s:>9.0f} {n / step_s:>14,.0f} {phys_s * 1e3:>11.3f} "
-                    f"{step_s / phys_s:>12.2f} {peak_rss_mib():>13.0f} "
-                    f"{peak_gpu_mib(args.device):>13}"
-                )
+    rows = [(t, d, mode, n) for t in teams for d in args.dynamics for mode in args.modes
+            for n in args.sizes]  # fmt: skip
+    for team, dyn, mode, n in rows:
+        sizes, scenarios = teams[team]
+        if args.device.startswith("cuda"):
+            torch.cuda.reset_peak_memory_stats()
+        env = make_env(
+            *args.overrides,
+            *sizes,
+            f"dynamics={dyn}",
+            f"env.compile_step={MODES[mode]}",
+            num_envs=n,
+            scenarios=scenarios,
+            device=args.device,
+        )
+        warmup, probe = time_steps(env, 3, args.device)
+        steps = max(10, int(args.seconds / probe))
+        step_s = time_steps(env, steps, args.device)[1]
+        phys_s = time_physics(env, max(10, steps // 2), args.device)
+        compile_s = f"{warmup:.1f}" if mode == "compiled" else "-"
+        print(
+            f"{team:<5} {dyn:<10} {mode:<9} {n:>7} {compile_s:>10} {step_s * 1e3:>9.3f} "
+            f"{1 / step_s:>9.0f} {n / step_s:>14,.0f} "
+            f"{n * env.team_size / step_s:>14,.0f} {phys_s * 1e3:>11.3f} "
+            f"{step_s / phys_s:>12.2f} {peak_rss_mib():>13.0f} "
+            f"{peak_gpu_mib(args.device):>13}"
+        )
 
 
 if __name__ == "__main__":

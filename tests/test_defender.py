@@ -52,8 +52,8 @@ def test_route_state_observation_and_evasion_reward():
     view = DroneView(
         own_position=torch.tensor([[1.0, 2, 3]]),
         own_velocity=torch.tensor([[0.5, 0, 0]]),
-        other_position=torch.tensor([[4.0, 2, 3]]),
-        other_velocity=torch.tensor([[0.0, 1, 0]]),
+        other_position=torch.tensor([[[4.0, 2, 3]]]),
+        other_velocity=torch.tensor([[[0.0, 1, 0]]]),
         setpoint=torch.tensor([[1.0, 12, 3]]),
     )
     obs = OBSERVATIONS["route_state"]()(view)
@@ -89,7 +89,7 @@ def test_defender_env_reports_route_progress(scenarios):  # noqa: F811
     td = env.reset()
     # Fly straight at the setpoint: the progress term pays the metres gained.
     p = td["positions"][:, 1]
-    target = env.routes[env.route, td["waypoint"].squeeze(-1)]
+    target = env.routes[env.route[:, 0], td["waypoint"].squeeze(-1)]
     before = (target - p).norm(dim=-1)
     action = ((target - p) / env.max_speed[:, 1:]).clamp(-1, 1)
     out = env.step(td.set("action", action))["next"]
@@ -107,7 +107,8 @@ def test_controller_is_the_actors_deterministic_policy(defender_run):
     controller = load_controller(run / "controller.pt", "defender", "env.defender_network")
     assert (run / "controller.pt").stat().st_size < (run / "checkpoints" / "best.pt").stat().st_size
     g = torch.Generator().manual_seed(0)
-    view = DroneView(*(torch.randn(256, 3, generator=g) * 20 for _ in range(5)))
+    shapes = ((256, 3), (256, 3), (256, 1, 3), (256, 1, 3), (256, 3))
+    view = DroneView(*(torch.randn(shape, generator=g) * 20 for shape in shapes))
     obs = controller.observation(view)
     actor = actor_from_state(state, Bounded(-1.0, 1.0, shape=(3,)))
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
@@ -161,7 +162,7 @@ def test_nn_defenders_fly_the_network(mixed, defender_run, tmp_path):
 
     env, hover = rollout(tmp_path / "hover.pt")
     _, learned = rollout(run / "controller.pt")
-    nn = (mixed.split("val")["defender_strategy"] == STRATEGIES.index("nn"))[
+    nn = (mixed.split("val")["defender_strategy"][:, 0] == STRATEGIES.index("nn"))[
         hover["scenario_index"][:, 0, 0]
     ]
     assert nn.any() and (~nn).any()

@@ -209,8 +209,8 @@ def test_partial_reset_only_touches_flagged_envs(scenarios):
     assert env.step_count.tolist() == [0, 5, 0, 5]
     assert torch.equal(env.dynamics.position[[1, 3]], before[[1, 3]])
     starts = scenarios.split("train")[[4, 5]]
-    assert torch.allclose(env.dynamics.position[[0, 2], 0], starts["attacker_start"])
-    assert torch.allclose(env.dynamics.position[[0, 2], 1], starts["defender_start"])
+    assert torch.allclose(env.dynamics.position[[0, 2], :1], starts["attacker_start"])
+    assert torch.allclose(env.dynamics.position[[0, 2], 1:], starts["defender_start"])
     assert not out["done"].any()
 
 

@@ -66,12 +66,12 @@ def hovering_defender_set(tmp_path, attacker_x: list[float], attacker_speed: flo
     n = len(attacker_x)
     split = TensorDict(
         {
-            "defender_start": torch.tensor([[0.0, 0.0, 10.0]] * n),
-            "attacker_start": torch.tensor([[x, 0.0, 10.0] for x in attacker_x]),
-            "route": torch.zeros(n, dtype=torch.int64),
-            "defender_strategy": torch.zeros(n, dtype=torch.int64),
-            "defender_max_speed": torch.full((n,), 1.0),
-            "attacker_max_speed": torch.full((n,), attacker_speed),
+            "defender_start": torch.tensor([[[0.0, 0.0, 10.0]]] * n),
+            "attacker_start": torch.tensor([[[x, 0.0, 10.0]] for x in attacker_x]),
+            "route": torch.zeros(n, 1, dtype=torch.int64),
+            "defender_strategy": torch.zeros(n, 1, dtype=torch.int64),
+            "defender_max_speed": torch.full((n, 1), 1.0),
+            "attacker_max_speed": torch.full((n, 1), attacker_speed),
         },
         batch_size=[n],
     )

@@ -114,6 +114,10 @@ def fake_env(velocity_other, max_speed=5.0):
     velocity[0, 1] = torch.tensor(velocity_other)
     return SimpleNamespace(
         learner=0,
+        team=slice(0, 1),
+        opponents=slice(1, 2),
+        group=None,
+        action_key="action",
         pursuit_gain=1.0,
         max_speed=torch.tensor([[max_speed, 2.0]]),
         dynamics=SimpleNamespace(velocity=velocity),
@@ -122,7 +126,8 @@ def fake_env(velocity_other, max_speed=5.0):
 
 def pn_action(env, rel, **kwargs):
     positions = torch.tensor([[[0.0, 0.0, 10.0], [rel[0], rel[1], 10.0 + rel[2]]]])
-    td = TensorDict({"positions": positions}, batch_size=[1])
+    caught = torch.zeros(1, 1, dtype=torch.bool)
+    td = TensorDict({"positions": positions, "caught": caught}, batch_size=[1])
     return ProportionalNavigationPolicy(env, **kwargs)(td)["action"][0].tolist()
 
 

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from rlplat.agents.sac import NetSpec, make_actor
+from rlplat.agents.sac import NetSpec, actor_body, make_actor
 from rlplat.errors import ConfigError
 from rlplat.io import atomic_write_bytes
 
@@ -65,14 +65,24 @@ def check_compatible(state: dict[str, Any], net: NetSpec, interface: dict[str, s
             )
 
 
-def load_policy(path: str | Path, action_spec, device: torch.device | str = "cpu"):
+def load_policy(
+    path: str | Path, action_spec, device: torch.device | str = "cpu", group: str | None = None
+):
     """The deterministic-capable actor saved in a checkpoint (``best.pt`` or ``last.pt``)."""
-    return actor_from_state(load_checkpoint(path), action_spec, device)
+    return actor_from_state(load_checkpoint(path), action_spec, device, group)
 
 
-def actor_from_state(state: dict[str, Any], action_spec, device: torch.device | str = "cpu"):
-    """The actor of a loaded checkpoint (see :func:`load_checkpoint`)."""
+def actor_from_state(
+    state: dict[str, Any],
+    action_spec,
+    device: torch.device | str = "cpu",
+    group: str | None = None,
+):
+    """The actor of a loaded checkpoint (see :func:`load_checkpoint`); with ``group``, reading
+    and writing that group's entries (a team flying the shared network)."""
     net = NetSpec(**{k: tuple(v) if isinstance(v, list) else v for k, v in state["net"].items()})
     actor = make_actor(net, action_spec, device)
     actor.load_state_dict(state["actor"])
-    return actor
+    if group is None:
+        return actor
+    return make_actor(net, action_spec, device, group=group, body=actor_body(actor))

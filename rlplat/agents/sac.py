@@ -65,10 +65,20 @@ class Scaled(nn.Module):
         return self.body(torch.cat([observation * self.inv_scale, *rest], -1))
 
 
-def make_actor(net: NetSpec, action_spec: TensorSpec, device: torch.device | str = "cpu"):
+def make_actor(
+    net: NetSpec,
+    action_spec: TensorSpec,
+    device: torch.device | str = "cpu",
+    *,
+    group: str | None = None,
+    body: nn.Module | None = None,
+):
     """Gaussian policy squashed by tanh into the action bounds (TorchRL ``TanhNormal``).
 
-    Reads ``observation``, writes ``loc``, ``scale`` and ``action``. Under
+    Reads ``observation``, writes ``loc``, ``scale`` and ``action``; with ``group``, the same
+    entries under the group key (``(group, "observation")`` (N, K, obs_dim) and so on: TorchRL's
+    multi-agent layout), so that every drone of a team flies the one shared network. ``body``
+    (the ``actor_body`` of another actor) shares that actor's parameters. Under
     ``ExplorationType.DETERMINISTIC`` the action is the distribution's deterministic sample
     (tanh of the mean).
 
@@ -79,26 +89,31 @@ def make_actor(net: NetSpec, action_spec: TensorSpec, device: torch.device | str
     of pre-clamp values means full scale, which the policy reaches with finite means and
     without paying entropy. The critic clamps its action input the same way.
     """
-    body = MLP(
-        in_features=net.obs_dim,
-        out_features=2 * net.action_dim,
-        num_cells=list(net.actor_cells),
-        activation_class=ACTIVATIONS[net.activation],
-        device=device,
-    )
-    module = TensorDictModule(
-        nn.Sequential(
-            Scaled(body, net.obs_scale, device),
+    if body is None:
+        mlp = MLP(
+            in_features=net.obs_dim,
+            out_features=2 * net.action_dim,
+            num_cells=list(net.actor_cells),
+            activation_class=ACTIVATIONS[net.activation],
+            device=device,
+        )
+        body = nn.Sequential(
+            Scaled(mlp, net.obs_scale, device),
             NormalParamExtractor(scale_mapping="biased_softplus_1.0"),
-        ),
-        in_keys=["observation"],
-        out_keys=["loc", "scale"],
+        )
+
+    def key(name: str):
+        return name if group is None else (group, name)
+
+    module = TensorDictModule(
+        body, in_keys=[key("observation")], out_keys=[key("loc"), key("scale")]
     )
     low, high = action_spec.space.low, action_spec.space.high
     pad = net.action_margin * (high - low) / 2
     return ProbabilisticActor(
         module,
-        in_keys=["loc", "scale"],
+        in_keys=[key("loc"), key("scale")],
+        out_keys=[key("action")],
         spec=action_spec,
         safe=net.action_margin > 0,
         distribution_class=TanhNormal,
@@ -106,6 +121,11 @@ def make_actor(net: NetSpec, action_spec: TensorSpec, device: torch.device | str
         default_interaction_type=ExplorationType.RANDOM,
         return_log_prob=False,
     )
+
+
+def actor_body(actor) -> nn.Module:
+    """The parameterised part of an actor of :func:`make_actor` (observation -> loc, scale)."""
+    return actor.module[0].module
 
 
 def make_critic(net: NetSpec, device: torch.device | str = "cpu") -> ValueOperator:
@@ -160,6 +180,10 @@ class SACAgent:
         target_entropy: ``"auto"`` (minus the action dimension) or a number.
         loss_function: critic regression loss, ``l2`` or ``smooth_l1``.
         compile: wrap the update in ``torch.compile``.
+        group: the env's group key of a team of learners (None for a lone learner). The loss
+            trains on one drone's transitions at a time (flat keys, see
+            :func:`rlplat.agents.transitions.agent_rows`); ``policy`` flies the whole team with
+            the same parameters.
         device: where the networks live.
     """
 
@@ -177,10 +201,16 @@ class SACAgent:
         target_entropy: str | float = "auto",
         loss_function: str = "l2",
         compile: bool = False,
+        group: str | None = None,
         device: torch.device | str = "cpu",
     ) -> None:
         self.net = net
         self.actor = make_actor(net, action_spec, device)
+        self.policy = (
+            self.actor
+            if group is None
+            else make_actor(net, action_spec, device, group=group, body=actor_body(self.actor))
+        )
         critic = make_critic(net, device)
         self.loss = SACLoss(
             actor_network=self.actor,

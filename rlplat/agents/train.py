@@ -31,7 +31,7 @@ from rlplat.agents.checkpoint import (
 )
 from rlplat.agents.metrics import Metrics, make_logger, plot_learning_curve
 from rlplat.agents.sac import SACAgent, net_spec
-from rlplat.agents.transitions import n_step_transitions, shape_rewards
+from rlplat.agents.transitions import agent_rows, n_step_transitions, shape_rewards
 from rlplat.config import checked_threads
 from rlplat.envs.factory import build_env, resolve_scenarios
 from rlplat.errors import ConfigError
@@ -165,7 +165,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
         cfg, scenarios=scenarios, split="val", num_envs=n_val, device=device,
         scenario_order="sequential",
     )  # fmt: skip
-    net = net_spec(env.obs_fn.scale, env.action_spec.shape[-1], algo)
+    net = net_spec(env.obs_fn.scale, env.drone_action_spec.shape[-1], algo)
     if resume_state is not None:
         check_compatible(resume_state, net, _interface(cfg), ckpt_dir / "last.pt")
 
@@ -175,7 +175,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     env.set_seed(cfg.seed)
     agent = SACAgent(
         net,
-        env.action_spec[0] if env.action_spec.ndim > 1 else env.action_spec,
+        env.drone_action_spec,
         gamma=algo.gamma,
         tau=algo.tau,
         actor_lr=algo.actor_lr,
@@ -185,6 +185,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
         target_entropy=algo.target_entropy,
         loss_function=algo.loss_function,
         compile=algo.compile,
+        group=env.group,
         device=device,
     )
     counters = {"frames": 0, "updates": 0, "evals": 0, "wall_time_s": 0.0}
@@ -220,7 +221,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     scripted_start = algo.init_policy != "random" and learning_starts > 0
     collector = Collector(
         train_env,
-        agent.actor,
+        agent.policy,
         frames_per_batch=algo.frames_per_batch,
         total_frames=-1,
         init_random_frames=0 if resume_state is not None or scripted_start else learning_starts,
@@ -245,7 +246,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
 
     def validate() -> EpisodeResults:
         t0 = time.perf_counter()
-        results = evaluate(val_env, agent.actor)
+        results = evaluate(val_env, agent.policy)
         counters["evals"] += 1
         values = {f"eval/{k}": v for k, v in results.summary().items()}
         values["time/eval_s"] = time.perf_counter() - t0
@@ -295,7 +296,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
             t_collected = time.perf_counter()
             n = batch.numel()
             counters["frames"] += n
-            _store(buffer, batch, algo, keep)
+            _store(buffer, batch, algo, keep, env.group)
             values = _episode_metrics(batch, terms)
 
             if len(buffer) >= max(learning_starts, algo.batch_size):
@@ -345,7 +346,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
         cfg, scenarios=scenarios, split="test", num_envs=n_test, device=device,
         scenario_order="sequential",
     )  # fmt: skip
-    test = evaluate(test_env, agent.actor)
+    test = evaluate(test_env, agent.policy)
     metrics.log({f"test/{k}": v for k, v in test.summary().items()}, counters["frames"])
     summary = {
         "frames": counters["frames"],
@@ -363,10 +364,13 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
         "test_capture_rate": test.capture_rate,
         "test_mean_return": test.mean_return,
         "test_route_fraction": test.route_fraction.mean().item(),
+        "test_mean_time_to_capture_s": test.summary().get("mean_time_to_capture_s"),
         "test_scenarios": n_test,
         "scenario_digest": scenarios.digest,
         "scenario_dir": str(scenarios.path),
         "drone": cfg.drone.name,
+        "attackers": scenarios.attackers,
+        "defenders": scenarios.defenders,
         "seed": cfg.seed,
         "run_dir": str(run_dir),
     }
@@ -394,7 +398,7 @@ def _outcome(results: EpisodeResults, role: str) -> str:
 def _prefill(buffer, train_env, env, algo, keep) -> int:
     """Fill the replay buffer with ``algo.init_random_frames`` frames of the scripted
     ``algo.init_policy`` plus Gaussian noise (``algo.init_noise``); returns the frames."""
-    policy = NoisyPolicy(make_baseline(algo.init_policy, env), algo.init_noise)
+    policy = NoisyPolicy(make_baseline(algo.init_policy, env), algo.init_noise, env.action_key)
     steps = algo.frames_per_batch // algo.num_envs
     frames, td = 0, train_env.reset()
     while frames < algo.init_random_frames:
@@ -403,14 +407,16 @@ def _prefill(buffer, train_env, env, algo, keep) -> int:
             out, td = train_env.step_and_maybe_reset(policy(td))
             trajectory.append(out)
         batch = torch.stack(trajectory, dim=1)  # (envs, time), as a collector's batch
-        _store(buffer, batch, algo, keep)
+        _store(buffer, batch, algo, keep, env.group)
         frames += batch.numel()
     return frames
 
 
-def _store(buffer, batch, algo, keep) -> None:
+def _store(buffer, batch, algo, keep, group: str | None) -> None:
     """Add a collected ``(envs, time)`` batch to the buffer as what the learner trains on:
-    shaped rewards, n-step transitions, only the ``keep`` keys."""
+    a row per drone of a team, shaped rewards, n-step transitions, only the ``keep`` keys."""
+    if group is not None:
+        batch = agent_rows(batch, group)
     transitions = shape_rewards(batch, algo.potential_key, algo.potential_weight, algo.gamma)
     transitions = n_step_transitions(transitions, algo.n_steps, algo.gamma)
     buffer.extend(transitions.select(*keep).reshape(-1))

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 
 
 def shape_rewards(batch: TensorDictBase, key: str, weight: float, gamma: float) -> TensorDictBase:
@@ -68,3 +68,40 @@ def n_step_transitions(batch: TensorDictBase, n: int, gamma: float) -> TensorDic
 
 def _expand_index(index: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
     return index.reshape(*index.shape, *([1] * (like.ndim - 2))).expand_as(like)
+
+
+def agent_rows(batch: TensorDictBase, group: str) -> TensorDictBase:
+    """One row of transitions per drone of a team: what a shared policy's SAC loss trains on.
+
+    ``batch`` is a collector's ``(envs, T)`` batch of an env whose learners sit under ``group``
+    with an agent dimension K (``(group, "observation")`` (envs, T, K, obs_dim) and so on). The
+    result has batch shape ``(envs * K, T)`` and the flat keys of a lone learner's batch:
+    ``observation``, ``action`` and ``distance`` of each drone, ``("next", ...)`` its next
+    observation, reward and distance, and the env's ``done`` and ``terminated`` (the team's
+    episode ends at once). Each row is one drone's trajectory, so the n-step and shaping steps
+    apply unchanged.
+    """
+    envs, steps = batch.shape
+    team, nxt = batch[group], batch["next"]
+    agents = team.shape[-1]
+
+    def shared(x: torch.Tensor) -> torch.Tensor:  # (envs, T, 1) -> (envs, T, K, 1)
+        return x.unsqueeze(2).expand(envs, steps, agents, *x.shape[2:])
+
+    rows = TensorDict(
+        {
+            "observation": team["observation"],
+            "action": team["action"],
+            "distance": team["distance"],
+            "next": {
+                "observation": nxt[group, "observation"],
+                "reward": nxt[group, "reward"],
+                "distance": nxt[group, "distance"],
+                "done": shared(nxt["done"]),
+                "terminated": shared(nxt["terminated"]),
+            },
+        },
+        batch_size=(envs, steps, agents),
+        device=batch.device,
+    )
+    return rows.permute(0, 2, 1).contiguous().reshape(envs * agents, steps)

@@ -1,6 +1,7 @@
 """The drone interface as components: observation, action and reward, each chosen by config.
 
-Every component is small and batched over envs; shapes below use N for the env batch.
+Every component is small and batched: shapes below use ``*B`` for the batch (N envs, or N envs
+by the drones of a team), M for the opponents a drone sees and K for its team-mates.
 """
 
 from __future__ import annotations
@@ -16,13 +17,17 @@ from rlplat.errors import ConfigError
 
 @dataclass(frozen=True)
 class DroneView:
-    """The world seen from one drone: its own state, its opponent's and the defender's route.
+    """The world seen from one drone: its own state, its opponents', its team-mates' and the
+    defender's route.
 
     Attributes:
-        own_position, own_velocity, other_position, other_velocity: (N, 3) float32, m and m/s,
-            world frame ENU.
-        setpoint: (N, 3) float32 m, the route setpoint the defender flies to (its last one once
-            the route is flown); None where no observation reads it.
+        own_position, own_velocity: (*B, 3) float32, m and m/s, world frame ENU.
+        other_position, other_velocity: (*B, M, 3) float32, the opponents (attackers of a
+            defender, defenders of an attacker), in drone order.
+        setpoint: (*B, 3) float32 m, the route setpoint the (first) defender flies to (its last
+            one once the route is flown).
+        mate_position, mate_velocity: (*B, K, 3) float32, the drone's team-mates in drone
+            order; None (or K = 0) for a drone that flies alone.
     """
 
     own_position: Tensor
@@ -30,10 +35,12 @@ class DroneView:
     other_position: Tensor
     other_velocity: Tensor
     setpoint: Tensor | None = None
+    mate_position: Tensor | None = None
+    mate_velocity: Tensor | None = None
 
 
 def inside_ellipsoid(rel: Tensor, semi_axes: Tensor) -> Tensor:
-    """Whether offsets rel (N, 3) lie in the axis-aligned ellipsoid (3,) semi-axes: (N,) bool.
+    """Whether offsets rel (*B, 3) lie in the axis-aligned ellipsoid (3,) semi-axes: (*B,) bool.
 
     The boundary counts as inside.
     """
@@ -46,82 +53,108 @@ def inside_ellipsoid(rel: Tensor, semi_axes: Tensor) -> Tensor:
 class _Observation:
     """Base of the observations: ``dim`` features, each with a typical magnitude in ``scale``.
 
+    An observation is the drone's own features followed by a block per other drone it sees:
+    first each opponent, then each team-mate, in drone order (``other_layout`` per block). With
+    one opponent and no team-mate this is the 1-vs-1 observation.
+
     The env emits raw values (m, m/s); the agent's networks divide by ``scale`` first.
 
     Args:
         position_scale: m, typical magnitude of a position feature.
         velocity_scale: m/s, typical magnitude of a velocity feature.
+        opponents: M, opponents the drone sees (set by the env factory from the scenarios).
+        mates: K, team-mates the drone sees (set by the env factory from the scenarios).
     """
 
-    layout: tuple[str, ...] = ()  # "p" or "v" per 3-vector of the observation
+    own_layout: tuple[str, ...] = ()  # "p" or "v" per 3-vector of the drone's own features
+    other_layout: tuple[str, ...] = ()  # "p" or "v" per 3-vector of each other drone's block
 
-    def __init__(self, *, position_scale: float = 50.0, velocity_scale: float = 5.0) -> None:
+    def __init__(
+        self,
+        *,
+        position_scale: float = 50.0,
+        velocity_scale: float = 5.0,
+        opponents: int = 1,
+        mates: int = 0,
+    ) -> None:
         for name, v in (("position_scale", position_scale), ("velocity_scale", velocity_scale)):
             if not v > 0:
                 raise ConfigError(f"observation.{name}: must be > 0, got {v}")
+        if opponents < 1 or mates < 0:
+            raise ConfigError(f"observation: needs >= 1 opponent, got {opponents} and {mates}")
+        self.opponents, self.mates = int(opponents), int(mates)
+        layout = self.own_layout + self.other_layout * (self.opponents + self.mates)
         per = {"p": float(position_scale), "v": float(velocity_scale)}
-        self.scale = [per[kind] for kind in self.layout for _ in range(3)]
+        self.scale = [per[kind] for kind in layout for _ in range(3)]
         self.dim = len(self.scale)
+
+    def __call__(self, view: DroneView) -> Tensor:
+        """The observation (*B, dim) float32."""
+        others = [self._other(view, view.other_position, view.other_velocity)]
+        if self.mates:
+            others.append(self._other(view, view.mate_position, view.mate_velocity))
+        blocks = torch.cat(others, -2).flatten(-2)  # (*B, (M + K) * block)
+        return torch.cat([*self._own(view), blocks], -1)
+
+    def _own(self, view: DroneView) -> list[Tensor]:
+        """The drone's own features, each (*B, 3)."""
+        return []
+
+    def _other(self, view: DroneView, position: Tensor, velocity: Tensor) -> Tensor:
+        """The block of each other drone at ``position``/``velocity`` (*B, X, 3): (*B, X, f)."""
+        raise NotImplementedError
 
 
 class AbsoluteObservation(_Observation):
-    """Absolute positions and velocities: [p_own, v_own, p_other, v_other], (N, 12)."""
+    """Absolute positions and velocities: [p_own, v_own, (p_other, v_other) per other drone],
+    (*B, 12) with one opponent."""
 
-    layout = ("p", "v", "p", "v")
+    own_layout, other_layout = ("p", "v"), ("p", "v")
 
-    def __call__(self, view: DroneView) -> Tensor:
-        return torch.cat(
-            [view.own_position, view.own_velocity, view.other_position, view.other_velocity], -1
-        )
+    def _own(self, view: DroneView) -> list[Tensor]:
+        return [view.own_position, view.own_velocity]
+
+    def _other(self, view: DroneView, position: Tensor, velocity: Tensor) -> Tensor:
+        return torch.cat([position, velocity], -1)
 
 
 class RelativePositionObservation(_Observation):
-    """Relative position only: [p_other - p_own], (N, 3)."""
+    """Relative position only: [p_other - p_own per other drone], (*B, 3) with one opponent."""
 
-    layout = ("p",)
+    other_layout = ("p",)
 
-    def __call__(self, view: DroneView) -> Tensor:
-        return view.other_position - view.own_position
+    def _other(self, view: DroneView, position: Tensor, velocity: Tensor) -> Tensor:
+        return position - view.own_position.unsqueeze(-2)
 
 
 class RelativeStateObservation(_Observation):
-    """Own velocity and the opponent's relative state (paper eq. 1 for the attacker).
+    """Own velocity and each other drone's relative state (paper eq. 1 for the attacker).
 
-    s = [v_own, p_other - p_own, v_other - v_own], (N, 9).
+    s = [v_own, (p_other - p_own, v_other - v_own) per other drone], (*B, 9) with one opponent.
     """
 
-    layout = ("v", "p", "v")
+    own_layout, other_layout = ("v",), ("p", "v")
 
-    def __call__(self, view: DroneView) -> Tensor:
-        return torch.cat(
-            [
-                view.own_velocity,
-                view.other_position - view.own_position,
-                view.other_velocity - view.own_velocity,
-            ],
-            -1,
-        )
+    def _own(self, view: DroneView) -> list[Tensor]:
+        return [view.own_velocity]
+
+    def _other(self, view: DroneView, position: Tensor, velocity: Tensor) -> Tensor:
+        own_p, own_v = view.own_position.unsqueeze(-2), view.own_velocity.unsqueeze(-2)
+        return torch.cat([position - own_p, velocity - own_v], -1)
 
 
-class RouteStateObservation(_Observation):
+class RouteStateObservation(RelativeStateObservation):
     """What a route-flying defender needs: its own velocity, the way to its next setpoint and
-    the attacker's relative state.
+    each other drone's relative state.
 
-    s = [v_own, setpoint - p_own, p_other - p_own, v_other - v_own], (N, 12).
+    s = [v_own, setpoint - p_own, (p_other - p_own, v_other - v_own) per other drone], (*B, 12)
+    with one opponent.
     """
 
-    layout = ("v", "p", "p", "v")
+    own_layout = ("v", "p")
 
-    def __call__(self, view: DroneView) -> Tensor:
-        return torch.cat(
-            [
-                view.own_velocity,
-                view.setpoint - view.own_position,
-                view.other_position - view.own_position,
-                view.other_velocity - view.own_velocity,
-            ],
-            -1,
-        )
+    def _own(self, view: DroneView) -> list[Tensor]:
+        return [view.own_velocity, view.setpoint - view.own_position]
 
 
 OBSERVATIONS = {
@@ -141,7 +174,7 @@ class VelocityAction:
     dim = 3
 
     def __call__(self, action: Tensor, max_speed: Tensor) -> Tensor:
-        """Map action (N, 3) in [-1, 1] and max_speed (N,) m/s to a command (N, 3) m/s."""
+        """Map action (*B, 3) in [-1, 1] and max_speed (*B,) m/s to a command (*B, 3) m/s."""
         return action.clamp(-1.0, 1.0) * max_speed.unsqueeze(-1)
 
 
@@ -153,18 +186,23 @@ ACTIONS = {"velocity": VelocityAction}
 
 @dataclass(frozen=True)
 class RewardContext:
-    """What reward terms may read after a step.
+    """What reward terms may read after a step, per learning drone: (*B,) is (N,) for a lone
+    learner and (N, K) for a team of K.
 
     Attributes:
-        distance: (N,) m between attacker and defender at the end of the step.
-        visible: (N,) bool, the defender inside the attacker's vision ellipsoid.
-        captured: (N,) bool, the attacker came within the capture radius during the step.
-        grounded: (N,) bool, a drone is at or below the ground altitude after the step.
+        distance: (*B,) m from the drone to the nearest opponent still in play (a defender not
+            yet caught) at the end of the step.
+        visible: (*B,) bool: for an attacker, a defender in play inside its vision ellipsoid;
+            for a defender, itself inside some attacker's ellipsoid.
+        captured: (*B,) bool, a capture happened during the step (closest approach <= capture
+            radius): of any defender, for an attacker (the team shares it); of itself, for a
+            defender.
+        grounded: (*B,) bool, a drone is at or below the ground altitude after the step.
         distance_scale: m, the normalising distance of the ``distance_sq`` and ``proximity``
             terms.
-        route_progress: (N,) m the defender gained on its current setpoint during the step
+        route_progress: (*B,) m the defender gained on its current setpoint during the step
             (negative when it moved away; 0 once its route is flown).
-        setpoint_reached: (N,) bool, the defender reached its current setpoint in the step.
+        setpoint_reached: (*B,) bool, the defender reached its current setpoint in the step.
     """
 
     distance: Tensor
@@ -211,7 +249,7 @@ def _setpoint_reached(c: RewardContext) -> Tensor:
     return c.setpoint_reached.float()
 
 
-#: Reward terms: each returns an unweighted (N,) float32 value; a YAML gives the weights.
+#: Reward terms: each returns an unweighted (*B,) float32 value; a YAML gives the weights.
 REWARD_TERMS: dict[str, Callable[[RewardContext], Tensor]] = {
     "capture": _capture,
     "out_of_view": _out_of_view,
@@ -247,6 +285,6 @@ class Reward:
         self.distance_scale = float(distance_scale)
 
     def __call__(self, ctx: RewardContext) -> tuple[Tensor, dict[str, Tensor]]:
-        """Return the total reward (N,) and each weighted term (N,) by name."""
+        """Return the total reward (*B,) and each weighted term (*B,) by name."""
         parts = {name: w * REWARD_TERMS[name](ctx) for name, w in self.weights.items()}
         return torch.stack(list(parts.values())).sum(0), parts

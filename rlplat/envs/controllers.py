@@ -26,8 +26,33 @@ def follow_route(
 
 
 def pure_pursuit(position: Tensor, target: Tensor, max_speed: Tensor, gain: float) -> Tensor:
-    """Fly straight at the target's current position: (N, 3) command in m/s."""
+    """Fly straight at the target's current position: (*B, 3) command in m/s."""
     return _saturate(gain * (target - position), max_speed)
+
+
+def nearest(own: Tensor, others: Tensor, in_play: Tensor | None = None) -> Tensor:
+    """Index of the nearest other drone for each own drone.
+
+    Args:
+        own: (N, K, 3) m, the positions of K drones.
+        others: (N, M, 3) m, the positions of M other drones.
+        in_play: (N, M) bool, the other drones that may be picked (None: all); a row with none
+            in play picks among all.
+
+    Returns:
+        (N, K) int64 indices into the M other drones.
+    """
+    distance = (others.unsqueeze(1) - own.unsqueeze(2)).norm(dim=-1)  # (N, K, M)
+    if in_play is not None:
+        pool = in_play | ~in_play.any(-1, keepdim=True)
+        distance = distance.masked_fill(~pool.unsqueeze(1), float("inf"))
+    return distance.argmin(-1)
+
+
+def gather_drones(x: Tensor, index: Tensor) -> Tensor:
+    """``x[n, index[n, k]]`` for per-drone values x (N, M, ...) and index (N, K): (N, K, ...)."""
+    flat = index.reshape(*index.shape, *([1] * (x.ndim - 2))).expand(*index.shape, *x.shape[2:])
+    return x.gather(1, flat)
 
 
 def _saturate(command: Tensor, max_speed: Tensor) -> Tensor:

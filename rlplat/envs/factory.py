@@ -83,13 +83,17 @@ def build_env(
     if num_envs < 1:
         raise ConfigError(f"num_envs: must be >= 1, got {num_envs}")
     c = OmegaConf.to_container(cfg, resolve=True)
+    env_node = {**c["env"], **env_overrides}
+    k, m = env_node.get("attackers") or scenarios.attackers, scenarios.defenders
     dynamics = build_component(
-        DYNAMICS, "dynamics", c["dynamics"], num_envs=num_envs, num_drones=2, device=device
+        DYNAMICS, "dynamics", c["dynamics"], num_envs=num_envs, num_drones=k + m, device=device
     )
+    # What each learner sees: every opponent and every team-mate.
+    team, opponents = (k, m) if c["drone"]["learner"] == "attacker" else (m, k)
     reward = Reward(**checked_kwargs(Reward, c["reward"], "reward"))
     env_kwargs = checked_kwargs(
         PursuitEnv,
-        {**c["env"], **env_overrides},
+        env_node,
         "env",
         reserved=(
             "scenarios",
@@ -109,7 +113,9 @@ def build_env(
     return PursuitEnv(
         scenarios=scenarios,
         dynamics=dynamics,
-        observation=build_component(OBSERVATIONS, "observation", c["observation"]),
+        observation=build_component(
+            OBSERVATIONS, "observation", c["observation"], opponents=opponents, mates=team - 1
+        ),
         action=build_component(ACTIONS, "action", c["action"]),
         reward=reward,
         split=split,
@@ -122,7 +128,7 @@ def build_env(
 def _defender_network(path: str | None, scenarios: ScenarioSet, split: str, learner: str):
     """The network that flies the split's ``nn`` defenders (``env.defender_network``; null =
     the shipped one); None where no scripted defender needs one."""
-    nn_rows = scenarios.split(split)["defender_strategy"] == STRATEGIES.index("nn")
+    nn_rows = scenarios.split(split)["defender_strategy"] == STRATEGIES.index("nn")  # (n, m)
     if learner != "attacker" or not bool(nn_rows.any()):
         return None
     from rlplat.agents.controller import load_controller  # the agents import this module

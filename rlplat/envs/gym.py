@@ -10,6 +10,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
+from rlplat.errors import ConfigError
 from rlplat.scenarios import ScenarioSet
 
 
@@ -35,6 +36,11 @@ class PursuitGymEnv(gym.Env):
         cfg = compose_config("train", overrides)
         self.scenario_set = resolve_scenarios(cfg, scenarios)
         self.env = build_env(cfg, scenarios=self.scenario_set, split=split, num_envs=1)
+        if self.env.group is not None:
+            raise ConfigError(
+                f"gym adapter: flies one learning drone, the scenarios give the "
+                f"{self.env.group} {self.env.team_size} (scenario.attackers: valid 1)"
+            )
         self.ids = self.scenario_set.ids[split]
         obs_dim = self.env.observation_spec["observation"].shape[-1]
         act_dim = self.env.action_spec.shape[-1]

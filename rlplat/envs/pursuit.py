@@ -1,10 +1,10 @@
-"""The pursuit environment: an attacker and a defender drone, batched, in lock-step."""
+"""The pursuit environment: attacker and defender drones, batched, in lock-step."""
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Literal, Protocol
+from typing import Literal, NamedTuple, Protocol
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -13,11 +13,11 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from rlplat.envs.components import DroneView, Reward, RewardContext, inside_ellipsoid
-from rlplat.envs.controllers import follow_route, pure_pursuit
+from rlplat.envs.controllers import follow_route, gather_drones, nearest, pure_pursuit
 from rlplat.errors import ConfigError
 from rlplat.scenarios import STRATEGIES, ScenarioSet
 
-ATTACKER, DEFENDER = 0, 1
+ATTACKER, DEFENDER = 0, 1  # role indices into ROLES (and the drones of a 1-vs-1 env)
 NN = STRATEGIES.index("nn")
 ROLES = ("attacker", "defender")
 ORDERS = ("sequential", "shuffled", "random")
@@ -63,32 +63,61 @@ class ScenarioSampler:
         return idx.to(self.device)
 
 
-class PursuitEnv(EnvBase):
-    """An attacker drone pursues a defender drone that flies a route.
+class _Sight(NamedTuple):
+    """What the drones see of each other after a step or a reset."""
 
-    Every step commands the drone that does not learn (the defender flies its route with the
+    team_distance: Tensor  # (N, K) m, each learner to its nearest opponent in play
+    team_visible: Tensor  # (N, K) bool, a pair of the learner with an opponent in play in view
+    distance: Tensor  # (N,) m, the least distance of a pair in play
+    visible: Tensor  # (N,) bool, some pair in play in view
+
+
+class PursuitEnv(EnvBase):
+    """Attacker drones pursue defender drones that fly routes (1 vs 1 unless the scenarios say
+    otherwise).
+
+    Every step commands the drones that do not learn (a defender flies its route with its
     scenario's strategy: ``setpoints``, straight from setpoint to setpoint, or ``nn``, the
-    defender network; an attacker that does not learn flies pure pursuit), applies the
-    learner's action to its own drone, advances the dynamics one control period and reports
-    what happened.
+    defender network; an attacker that does not learn flies pure pursuit of the nearest defender
+    in play), applies the learners' actions to their drones, advances the dynamics one control
+    period and reports what happened.
+
+    Drones: the scenarios' k attackers, then their m defenders (``positions`` in that order).
+    The drones of the learner's role share one policy. A lone learner (k = 1 for an attacker;
+    a learning defender always flies alone) reads and writes root keys; a team of K > 1 follows
+    TorchRL's multi-agent layout: its entries sit under the group key ``"attacker"`` with an
+    agent dimension, and the done flags stay at the root (the whole env ends at once).
 
     Observation:
-        ``observation`` (N, obs.dim) from the observation component, seen from the learner.
-        Also ``distance`` (N, 1) m, ``visible`` and ``captured`` (N, 1) bool, ``positions``
-        (N, 2, 3) m (attacker, defender), ``waypoint`` (N, 1) the defender's next setpoint,
-        ``scenario_index`` (N, 1) row of the split.
+        ``observation`` (N, obs.dim), or ``("attacker", "observation")`` (N, K, obs.dim) for a
+        team, from the observation component: the drone's own features, then each opponent's
+        and each team-mate's. A team also gets ``("attacker", "distance")`` (N, K, 1), each
+        drone's distance to the nearest defender in play. Also ``distance`` (N, 1) m, the least
+        attacker-defender distance among the defenders in play, ``visible`` (N, 1) bool (a
+        defender in play inside some attacker's vision ellipsoid), ``captured`` (N, 1) bool
+        (every defender caught), ``caught`` (N, m) bool per defender, ``positions``
+        (N, k + m, 3) m, ``waypoint`` (N, m) each defender's next setpoint, ``scenario_index``
+        (N, 1) row of the split.
     Action:
-        ``action`` (N, action.dim) in [-1, 1], mapped by the action component.
+        ``action`` (N, action.dim), or ``("attacker", "action")`` (N, K, action.dim), in
+        [-1, 1], mapped by the action component.
     Reward:
-        ``reward`` (N, 1): the reward component's weighted sum of terms, and each weighted term
-        ``("reward_terms", name)`` (N, 1), both entries of the reward spec.
+        per learning drone, the reward component's weighted sum of terms: ``reward`` (N, 1) and
+        each weighted term ``("reward_terms", name)`` (N, 1) for a lone learner. A team gets
+        ``("attacker", "reward")`` (N, K, 1), and the root ``reward`` and ``reward_terms`` are the
+        team's means (what returns and episode metrics report).
     Episode end:
-        terminated on capture (closest approach during the step <= capture_radius) or when a
-        drone touches the ground (z <= ground_altitude), and, if ``terminate_out_of_view``, when
-        the defender leaves the attacker's vision ellipsoid; truncated at ``time_limit`` or when
-        the defender has flown its whole route. The observation of a done step is the true one.
+        a defender is caught when some attacker's closest approach to it during a step is <=
+        capture_radius; a caught defender stops, hovers where it was caught and is out of play
+        (no attacker targets, measures or catches it again). Terminated when every defender is
+        caught, when a drone touches the ground (z <= ground_altitude) and, if
+        ``terminate_out_of_view``, when no defender in play is inside any attacker's vision
+        ellipsoid; truncated at ``time_limit`` or when every defender in play has flown its
+        whole route. With m = 1 the first capture ends the episode. The observation of a done
+        step is the true one.
     Config:
-        ``env`` of ``conf/train.yaml``; the components come from the ``dynamics``,
+        ``env`` of ``conf/train.yaml``; the drone counts come from the scenarios
+        (``scenario.attackers``, ``scenario.defenders``); the components from the ``dynamics``,
         ``observation``, ``action`` and ``reward`` groups. ``compile_step`` runs the step's
         numerical work (:meth:`_advance_eager`: commands, physics, reward, flags, observation)
         as one ``torch.compile`` program for this batch size: with the ``velocity`` model about
@@ -96,7 +125,10 @@ class PursuitEnv(EnvBase):
         seconds of compiling (~1 min for ``quadrotor``, which it does not speed up). Input
         checks, resets and the tensordict plumbing stay eager. ``defender_network`` flies the
         defenders of ``nn`` scenarios when the attacker learns (the env factory loads
-        ``env.defender_network``, by default the shipped ``defender_v1``).
+        ``env.defender_network``, by default the shipped ``defender_v1``); a network defender
+        sees its nearest attacker, as in the 1-vs-1 setting it was trained in. ``attackers``
+        flies only the first this many attackers of each scenario (None: all of them), e.g. to
+        measure a 1-vs-1 policy on the defenders of a 2-vs-1 set.
     """
 
     def __init__(
@@ -121,6 +153,7 @@ class PursuitEnv(EnvBase):
         pursuit_gain: float = 5.0,
         compile_step: bool = False,
         defender_network: Callable[[DroneView], Tensor] | None = None,
+        attackers: int | None = None,
         device: torch.device | str = "cpu",
     ) -> None:
         num_envs = dynamics.position.shape[0]
@@ -130,21 +163,52 @@ class PursuitEnv(EnvBase):
         for name, v in (("control_period", control_period), ("time_limit", time_limit)):
             if not v > 0:
                 raise ConfigError(f"env.{name}: must be > 0, got {v}")
+        k, m = scenarios.attackers, scenarios.defenders
+        if attackers is not None:
+            if isinstance(attackers, bool) or not isinstance(attackers, int) or attackers < 1:
+                raise ConfigError(f"env.attackers: a positive integer or null, got {attackers!r}")
+            if attackers > k:
+                raise ConfigError(f"env.attackers: {attackers}, the scenarios have {k} (at most)")
+            k = attackers
+        if learner == "defender" and m > 1:
+            raise ConfigError(
+                f"scenario.defenders: a learning defender flies alone, got {m} (valid: 1)"
+            )
+        if dynamics.position.shape[1] != k + m:
+            raise ValueError(
+                f"dynamics: {dynamics.position.shape[1]} drones, the scenarios have {k + m}"
+            )
         self.scenario_set, self.split_name = scenarios, split
         self.scenarios = scenarios.split(split).to(self.device)
-        n_nn = int((self.scenarios["defender_strategy"] == NN).sum())
+        if k < scenarios.attackers:  # fly the first k attackers of each scenario
+            for key in ("attacker_start", "attacker_max_speed"):
+                self.scenarios = self.scenarios.set(key, self.scenarios[key][:, :k].clone())
+        n_nn = int((self.scenarios["defender_strategy"] == NN).any(-1).sum())
         if n_nn and learner == "attacker" and defender_network is None:
             raise ConfigError(
                 f"scenario split '{split}': {n_nn} scenarios ask for defender_strategy 'nn' but "
                 "no defender network is given (env.defender_network)"
             )
-        # Maps the defender's view to its action in [-1, 1] (see rlplat.agents.controller);
+        # Maps a defender's view to its action in [-1, 1] (see rlplat.agents.controller);
         # only a scripted defender of an `nn` scenario flies it.
         self.defender_network = defender_network if n_nn and learner == "attacker" else None
         self.routes = scenarios.routes.to(self.device)
         self.dynamics = dynamics
         self.obs_fn, self.action_fn, self.reward_fn = observation, action, reward
+        # Drones: attackers first, then defenders; the learner's role is its team.
         self.learner = ROLES.index(learner)
+        self.num_attackers, self.num_defenders = k, m
+        self.attackers, self.defenders = slice(0, k), slice(k, k + m)
+        self.team, self.opponents = (
+            (self.attackers, self.defenders)
+            if self.learner == ATTACKER
+            else (self.defenders, self.attackers)
+        )
+        self.team_size = k if self.learner == ATTACKER else m
+        self.group = learner if self.team_size > 1 else None
+        t = self.team_size
+        mates = [[j for j in range(t) if j != i] for i in range(t)]
+        self._mate_index = torch.tensor(mates, dtype=torch.int64, device=self.device).view(t, -1)
         self.control_period = float(control_period)
         self.max_steps = math.ceil(time_limit / control_period - 1e-9)
         self.capture_radius = float(capture_radius)
@@ -162,51 +226,75 @@ class PursuitEnv(EnvBase):
         # Per-env episode state.
         z = dict(device=self.device, dtype=torch.int64)
         self.scenario_index = torch.zeros(num_envs, **z)
-        self.route = torch.zeros(num_envs, **z)
-        self.waypoint = torch.zeros(num_envs, **z)
         self.step_count = torch.zeros(num_envs, **z)
-        self.nn_defender = torch.zeros(num_envs, dtype=torch.bool, device=self.device)
-        self.max_speed = torch.ones(num_envs, 2, device=self.device)
+        self.route = torch.zeros(num_envs, m, **z)
+        self.waypoint = torch.zeros(num_envs, m, **z)
+        self.nn_defender = torch.zeros(num_envs, m, dtype=torch.bool, device=self.device)
+        self.caught = torch.zeros(num_envs, m, dtype=torch.bool, device=self.device)
+        self.max_speed = torch.ones(num_envs, k + m, device=self.device)
         self._make_specs(num_envs)
+
+    def team_key(self, name: str) -> str | tuple[str, str]:
+        """Where the learners' entry ``name`` sits: ``name`` for a lone learner, ``(group,
+        name)`` for a team."""
+        return name if self.group is None else (self.group, name)
+
+    @property
+    def drone_action_spec(self) -> Bounded:
+        """One drone's action spec, (action.dim,): the bounds of a policy network's output."""
+        spec = self.full_action_spec[self.action_key]
+        return spec[(0,) * (spec.ndim - 1)]
 
     # Specs -------------------------------------------------------------------------------
 
     def _make_specs(self, n: int) -> None:
-        def flag():
-            return Categorical(2, shape=(n, 1), dtype=torch.bool, device=self.device)
+        t, m = self.team_size, self.num_defenders
+
+        def flag(*shape):
+            return Categorical(2, shape=(n, *shape), dtype=torch.bool, device=self.device)
 
         def real(*shape):
             return Unbounded(shape=(n, *shape), dtype=torch.float32, device=self.device)
 
-        def index():
-            return Unbounded(shape=(n, 1), dtype=torch.int64, device=self.device)
+        def index(*shape):
+            return Unbounded(shape=(n, *shape), dtype=torch.int64, device=self.device)
 
+        def team(**specs):  # a lone learner's entries at the root, a team's under its group
+            if self.group is None:
+                return {k: s[:, 0] for k, s in specs.items()}
+            return {self.group: Composite(specs, shape=(n, t), device=self.device)}
+
+        team_obs = {"observation": real(t, self.obs_fn.dim)}
+        if self.group is not None:
+            team_obs["distance"] = real(t, 1)
         self.observation_spec = Composite(
-            observation=real(self.obs_fn.dim),
+            **team(**team_obs),
             distance=real(1),
-            visible=flag(),
-            captured=flag(),
-            positions=real(2, 3),
-            waypoint=index(),
-            scenario_index=index(),
+            visible=flag(1),
+            captured=flag(1),
+            caught=flag(m),
+            positions=real(self.num_attackers + m, 3),
+            waypoint=index(m),
+            scenario_index=index(1),
             shape=(n,),
             device=self.device,
         )
-        self.action_spec = Bounded(
-            -1.0, 1.0, shape=(n, self.action_fn.dim), dtype=torch.float32, device=self.device
+        action = Bounded(
+            -1.0, 1.0, shape=(n, t, self.action_fn.dim), dtype=torch.float32, device=self.device
         )
+        self.full_action_spec = Composite(team(action=action), shape=(n,), device=self.device)
         # Each weighted reward term is a reward entry of its own, so that TorchRL transforms
-        # (e.g. RewardSum) can sum it over an episode; ``reward`` is what the learner optimises.
-        self.reward_spec = Composite(
-            reward=real(1),
-            reward_terms=Composite(
-                {k: real(1) for k in self.reward_fn.weights}, shape=(n,), device=self.device
-            ),
-            shape=(n,),
-            device=self.device,
+        # (e.g. RewardSum) can sum it over an episode; ``reward`` is what the learner optimises
+        # (a team optimises its per-drone rewards; the root holds their mean).
+        terms = Composite(
+            {k: real(1) for k in self.reward_fn.weights}, shape=(n,), device=self.device
+        )
+        per_drone = team(reward=real(t, 1)) if self.group is not None else {}
+        self.full_reward_spec = Composite(
+            reward=real(1), reward_terms=terms, **per_drone, shape=(n,), device=self.device
         )
         self.done_spec = Composite(
-            done=flag(), terminated=flag(), truncated=flag(), shape=(n,), device=self.device
+            done=flag(1), terminated=flag(1), truncated=flag(1), shape=(n,), device=self.device
         )
 
     # TorchRL hooks -----------------------------------------------------------------------
@@ -224,41 +312,39 @@ class PursuitEnv(EnvBase):
             idx = self.sampler.next(k)
             sc = self.scenarios[idx]
             # New tensors, not in-place writes: earlier outputs keep their values.
+            rows = mask.unsqueeze(-1)  # per-drone state: the masked rows, in drone order
             self.scenario_index = self.scenario_index.masked_scatter(mask, idx)
-            self.route = self.route.masked_scatter(mask, sc["route"])
-            self.waypoint = self.waypoint.masked_fill(mask, 0)
             self.step_count = self.step_count.masked_fill(mask, 0)
-            self.nn_defender = self.nn_defender.masked_scatter(mask, sc["defender_strategy"] == NN)
+            self.route = self.route.masked_scatter(rows, sc["route"])
+            self.waypoint = self.waypoint.masked_fill(rows, 0)
+            self.caught = self.caught.masked_fill(rows, False)
+            self.nn_defender = self.nn_defender.masked_scatter(rows, sc["defender_strategy"] == NN)
             self.max_speed = self.max_speed.masked_scatter(
-                mask.unsqueeze(-1),
-                torch.stack([sc["attacker_max_speed"], sc["defender_max_speed"]], -1),
+                rows, torch.cat([sc["attacker_max_speed"], sc["defender_max_speed"]], -1)
             )
             position = self.dynamics.position.clone()
-            position[mask] = torch.stack([sc["attacker_start"], sc["defender_start"]], 1)
+            position[mask] = torch.cat([sc["attacker_start"], sc["defender_start"]], 1)
             self.dynamics.reset(mask, position, torch.zeros_like(position), self.max_speed.clone())
-        p = self.dynamics.position
-        rel = p[:, DEFENDER] - p[:, ATTACKER]
-        visible = inside_ellipsoid(rel, self.semi_axes)
+        sight = self._sight(self._relative(self.dynamics.position))
         flag = torch.zeros(n, 1, dtype=torch.bool, device=self.device)
-        out = self._outputs(
-            rel.norm(dim=-1),
-            visible,
-            torch.zeros_like(visible),
-            done=flag,
-            terminated=flag.clone(),
-            truncated=flag.clone(),
-        )
-        return TensorDict(out, batch_size=self.batch_size, device=self.device)
+        out = self._outputs(sight, flag, done=flag, terminated=flag.clone(), truncated=flag.clone())
+        return self._tensordict(out)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict["action"]
-        if action.shape != self.action_spec.shape:
-            raise ValueError(
-                f"action: shape {tuple(action.shape)}, expected {tuple(self.action_spec.shape)}"
-            )
+        action = tensordict[self.action_key]
+        expected = self.full_action_spec[self.action_key].shape
+        if action.shape != expected:
+            raise ValueError(f"action: shape {tuple(action.shape)}, expected {tuple(expected)}")
         if not torch.isfinite(action).all():
             raise ValueError("action: contains NaN or inf")
-        return TensorDict(self._advance(action), batch_size=self.batch_size, device=self.device)
+        return self._tensordict(self._advance(action))
+
+    def _tensordict(self, out: dict) -> TensorDictBase:
+        """The output entries as a tensordict; a team's group has the agent dimension."""
+        td = TensorDict(out, batch_size=self.batch_size, device=self.device)
+        if self.group is not None:
+            td.get(self.group).batch_size = (*self.batch_size, self.team_size)
+        return td
 
     def _advance_eager(self, action: Tensor) -> dict[str, Tensor | dict[str, Tensor]]:
         """One control period for every env: the step's whole numerical work on tensors.
@@ -266,99 +352,155 @@ class PursuitEnv(EnvBase):
         Reads and replaces the episode state and the dynamics' state; returns the entries of the
         step's output tensordict. ``env.compile_step`` wraps this method in ``torch.compile``.
         """
-        # Command every drone: the opponent by its script, the learner by the policy.
-        p = self.dynamics.position
+        n, t = self.batch_size[0], self.team_size
+        # Command every drone: the other role by its script, the learners by the policy.
+        p, v = self.dynamics.position, self.dynamics.velocity
         target, route_done = self._target()
-        opponent = self._scripted_command(p, self.dynamics.velocity, target, route_done)
-        own = self.action_fn(action, self.max_speed[:, self.learner])
-        pair = (own, opponent) if self.learner == ATTACKER else (opponent, own)
-        rel_before = p[:, DEFENDER] - p[:, ATTACKER]
-        to_target = (target - p[:, DEFENDER]).norm(dim=-1)
-        self.dynamics.advance(torch.stack(pair, 1), self.control_period)
+        own = self.action_fn(action.reshape(n, t, -1), self.max_speed[:, self.team])
+        if self.learner == ATTACKER:
+            commands = (own, self._defender_command(p, v, target, route_done))
+        else:
+            commands = (self._attacker_command(p), own)
+        rel_before = self._relative(p)
+        in_play = ~self.caught
+        to_target = (target - p[:, self.defenders]).norm(dim=-1)
+        self.dynamics.advance(torch.cat(commands, 1), self.control_period)
         p = self.dynamics.position
         self.step_count = self.step_count + 1
-        # The defender moves on once it is within the acceptance radius of its setpoint.
-        to_target_after = (target - p[:, DEFENDER]).norm(dim=-1)
-        reached = (to_target_after <= self.setpoint_acceptance) & ~route_done
+        # A defender moves on once it is within the acceptance radius of its setpoint.
+        to_target_after = (target - p[:, self.defenders]).norm(dim=-1)
+        reached = (to_target_after <= self.setpoint_acceptance) & ~route_done & in_play
         self.waypoint = self.waypoint + reached
-        progress = (to_target - to_target_after).masked_fill(route_done, 0.0)
+        progress = (to_target - to_target_after).masked_fill(route_done | ~in_play, 0.0)
 
-        rel = p[:, DEFENDER] - p[:, ATTACKER]
-        distance, visible = rel.norm(dim=-1), inside_ellipsoid(rel, self.semi_axes)
-        captured = _closest_approach(rel_before, rel) <= self.capture_radius
+        # Captures: any attacker's closest approach to a defender in play, during the step.
+        rel = self._relative(p)
+        hit = _closest_approach(rel_before, rel) <= self.capture_radius  # (N, k, m)
+        newly = (hit & in_play.unsqueeze(1)).any(1)  # (N, m)
+        self.caught = self.caught | newly
+        sight = self._sight(rel)
         grounded = (p[..., 2] <= self.ground_altitude).any(-1)
+        if self.learner == ATTACKER:  # a capture is the team's; route terms read the defenders'
+            captured = newly.any(-1, keepdim=True).expand(n, t)
+            progress, reached = progress.sum(-1, keepdim=True), reached.any(-1, keepdim=True)
+            progress, reached = progress.expand(n, t), reached.expand(n, t)
+        else:
+            captured = newly
         total, terms = self.reward_fn(
             RewardContext(
-                distance,
-                visible,
+                sight.team_distance,
+                sight.team_visible,
                 captured,
-                grounded,
+                grounded.unsqueeze(-1).expand(n, t),
                 self.reward_fn.distance_scale,
                 route_progress=progress,
                 setpoint_reached=reached,
             )
         )
-        terminated = captured | grounded
+        all_caught = self.caught.all(-1)
+        terminated = all_caught | grounded
         if self.terminate_out_of_view:
-            terminated = terminated | ~visible
-        truncated = (self.step_count >= self.max_steps) | (self.waypoint >= self.routes.shape[1])
+            terminated = terminated | ~sight.visible
+        flown = (self.waypoint >= self.routes.shape[1]) | self.caught
+        truncated = (self.step_count >= self.max_steps) | flown.all(-1)
         truncated = truncated & ~terminated
+        rewards = {"reward": total.mean(-1, keepdim=True)}
+        rewards["reward_terms"] = {k: x.mean(-1, keepdim=True) for k, x in terms.items()}
         return self._outputs(
-            distance,
-            visible,
-            captured,
-            reward=total.unsqueeze(-1),
-            reward_terms={k: t.unsqueeze(-1) for k, t in terms.items()},
+            sight,
+            all_caught.unsqueeze(-1),
+            team_reward=total.unsqueeze(-1),
             terminated=terminated.unsqueeze(-1),
             truncated=truncated.unsqueeze(-1),
             done=(terminated | truncated).unsqueeze(-1),
+            **rewards,
         )
 
     # Helpers -----------------------------------------------------------------------------
 
     def _target(self) -> tuple[Tensor, Tensor]:
-        """The defender's current setpoint (N, 3) and whether its route is done (N,)."""
+        """Each defender's current setpoint (N, m, 3) and whether its route is done (N, m)."""
         last = self.routes.shape[1] - 1
         return self.routes[self.route, self.waypoint.clamp(max=last)], self.waypoint > last
 
-    def _scripted_command(self, p: Tensor, v: Tensor, target: Tensor, route_done: Tensor) -> Tensor:
-        opponent = 1 - self.learner
-        speed = self.max_speed[:, opponent]
-        if opponent == ATTACKER:
-            return pure_pursuit(p[:, ATTACKER], p[:, DEFENDER], speed, self.pursuit_gain)
-        command = follow_route(p[:, DEFENDER], target, route_done, speed, self.setpoint_gain)
-        if self.defender_network is None:
-            return command
-        view = DroneView(p[:, DEFENDER], v[:, DEFENDER], p[:, ATTACKER], v[:, ATTACKER], target)
-        learned = self.action_fn(self.defender_network(view), speed)
-        use = (self.nn_defender & ~route_done).unsqueeze(-1)
-        return torch.where(use, learned, command)
+    def _relative(self, p: Tensor) -> Tensor:
+        """Defender minus attacker position for every pair: (N, k, m, 3)."""
+        return p[:, self.defenders].unsqueeze(1) - p[:, self.attackers].unsqueeze(2)
+
+    def _sight(self, rel: Tensor) -> _Sight:
+        """Distances and visibility of the pairs ``rel`` (N, k, m, 3), among the defenders in
+        play (all of them once every one is caught)."""
+        distance = rel.norm(dim=-1)
+        in_play = (~self.caught | self.caught.all(-1, keepdim=True)).unsqueeze(1)
+        far = distance.masked_fill(~in_play, float("inf"))
+        seen = inside_ellipsoid(rel, self.semi_axes) & in_play
+        per = -1 if self.learner == ATTACKER else 1  # reduce over the opponents
+        overall = far.flatten(1).amin(-1), seen.flatten(1).any(-1)
+        return _Sight(far.amin(per), seen.any(per), *overall)
+
+    def _defender_command(self, p: Tensor, v: Tensor, target: Tensor, route_done: Tensor):
+        """Scripted defenders: (N, m, 3) m/s; a caught defender holds where it is."""
+        speed = self.max_speed[:, self.defenders]
+        own_p, own_v = p[:, self.defenders], v[:, self.defenders]
+        command = follow_route(own_p, target, route_done, speed, self.setpoint_gain)
+        if self.defender_network is not None:
+            near = nearest(own_p, p[:, self.attackers])
+            view = DroneView(
+                own_p,
+                own_v,
+                gather_drones(p[:, self.attackers], near).unsqueeze(-2),
+                gather_drones(v[:, self.attackers], near).unsqueeze(-2),
+                target,
+            )
+            learned = self.action_fn(self.defender_network(view), speed)
+            command = torch.where((self.nn_defender & ~route_done).unsqueeze(-1), learned, command)
+        return command.masked_fill(self.caught.unsqueeze(-1), 0.0)
+
+    def _attacker_command(self, p: Tensor) -> Tensor:
+        """Scripted attackers: pure pursuit of the nearest defender in play, (N, k, 3) m/s."""
+        own, defenders = p[:, self.attackers], p[:, self.defenders]
+        goal = gather_drones(defenders, nearest(own, defenders, ~self.caught))
+        return pure_pursuit(own, goal, self.max_speed[:, self.attackers], self.pursuit_gain)
 
     def _outputs(
-        self,
-        distance: Tensor,
-        visible: Tensor,
-        captured: Tensor,
-        **extra: Tensor | dict[str, Tensor],
+        self, sight: _Sight, captured: Tensor, team_reward: Tensor | None = None, **extra
     ) -> dict[str, Tensor | dict[str, Tensor]]:
         """The output entries; every tensor in them is fresh (no alias of the env's state)."""
         p, v = self.dynamics.position, self.dynamics.velocity  # replaced on every advance/reset
-        me, other = self.learner, 1 - self.learner
-        view = DroneView(p[:, me], v[:, me], p[:, other], v[:, other], self._target()[0])
-        return {
-            "observation": self.obs_fn(view),
-            "distance": distance.unsqueeze(-1),
-            "visible": visible.unsqueeze(-1),
-            "captured": captured.unsqueeze(-1),
+        n, t = self.batch_size[0], self.team_size
+        own_p, own_v = p[:, self.team], v[:, self.team]
+        other_p = p[:, self.opponents].unsqueeze(1).expand(n, t, -1, 3)
+        other_v = v[:, self.opponents].unsqueeze(1).expand(n, t, -1, 3)
+        target = self._target()[0]
+        setpoint = target if self.learner != ATTACKER else target[:, :1].expand(n, t, 3)
+        view = DroneView(
+            own_p, own_v, other_p, other_v, setpoint,
+            own_p[:, self._mate_index], own_v[:, self._mate_index],
+        )  # fmt: skip
+        team = {"observation": self.obs_fn(view)}
+        out = {
+            "distance": sight.distance.unsqueeze(-1),
+            "visible": sight.visible.unsqueeze(-1),
+            "captured": captured,
+            "caught": self.caught,
             "positions": p,
-            "waypoint": self.waypoint.unsqueeze(-1),
+            "waypoint": self.waypoint,
             "scenario_index": self.scenario_index.unsqueeze(-1),
             **extra,
         }
+        if self.group is None:
+            out.update({k: x[:, 0] for k, x in team.items()})
+        else:
+            team["distance"] = sight.team_distance.unsqueeze(-1)
+            if team_reward is not None:
+                team["reward"] = team_reward
+            out[self.group] = team
+        return out
 
 
 def _closest_approach(before: Tensor, after: Tensor) -> Tensor:
-    """Least norm (N,) of the relative position moving linearly from ``before`` to ``after``."""
+    """Least norm (*B,) of relative positions (*B, 3) moving linearly from ``before`` to
+    ``after``."""
     delta = after - before
     t = (-(before * delta).sum(-1) / (delta * delta).sum(-1).clamp_min(1e-12)).clamp(0.0, 1.0)
     return (before + t.unsqueeze(-1) * delta).norm(dim=-1)

@@ -1,8 +1,9 @@
 """Scripted reference policies: what a learned controller must beat on the same scenarios.
 
 Each is a TorchRL-style policy with the in/out keys of a learned actor: it reads an env output
-(``positions``, ``waypoint``) and writes ``action`` in the action's [-1, 1] units (command /
-the learner's maximum speed per axis). ``BASELINES`` names them for the evaluator.
+(``positions``, ``waypoint``, ``caught``) and writes the env's action (``action``, or a team's
+``("attacker", "action")``) in the action's [-1, 1] units (command / the learner's maximum speed
+per axis). ``BASELINES`` names them for the evaluator.
 """
 
 from __future__ import annotations
@@ -13,20 +14,36 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDictBase
 
-from rlplat.envs.controllers import follow_route
+from rlplat.envs.controllers import follow_route, gather_drones, nearest
 from rlplat.envs.pursuit import ATTACKER, DEFENDER, ROLES, PursuitEnv
 from rlplat.errors import ConfigError
 
 
+def _nearest_opponent(env: PursuitEnv, td: TensorDictBase):
+    """The learners' positions (N, K, 3), their maximum speeds (N, K, 1), and the index (N, K)
+    of each one's nearest opponent in play (a defender not yet caught)."""
+    p = td["positions"]
+    own, others = p[:, env.team], p[:, env.opponents]
+    in_play = ~td["caught"] if env.learner == ATTACKER else None
+    speed = env.max_speed[:, env.team].unsqueeze(-1)
+    return own, speed, nearest(own, others, in_play)
+
+
+def _act(env: PursuitEnv, td: TensorDictBase, action: torch.Tensor) -> TensorDictBase:
+    """Write the learners' actions (N, K, 3) where the env reads them."""
+    return td.set(env.action_key, action if env.group is not None else action[:, 0])
+
+
 class PurePursuitPolicy:
-    """Fly the learner straight at its opponent's current position (the pure-pursuit law).
+    """Fly each learner straight at its nearest opponent's current position (pure pursuit).
 
     A TorchRL-style policy for :func:`rlplat.eval.episodes.evaluate`: reads the env's
-    ``positions``, writes ``action``, the command ``gain * (p_other - p_own)`` saturated at the
-    learner's maximum speed per axis, expressed in the action's [-1, 1] units.
+    ``positions`` (and ``caught``), writes the env's action, the command ``gain * (p_other -
+    p_own)`` saturated at the learner's maximum speed per axis, expressed in the action's
+    [-1, 1] units. An attacker team's drones each chase the defender in play nearest to them.
 
     Args:
-        env: the env the policy flies in (its learner index and per-env maximum speeds).
+        env: the env the policy flies in (its learners and per-drone maximum speeds).
         gain: 1/s, command per metre of separation; None takes the env's ``pursuit_gain``.
     """
 
@@ -35,11 +52,9 @@ class PurePursuitPolicy:
         self.gain = env.pursuit_gain if gain is None else float(gain)
 
     def __call__(self, td: TensorDictBase) -> TensorDictBase:
-        me = self.env.learner
-        p = td["positions"]
-        rel = p[:, 1 - me] - p[:, me]
-        speed = self.env.max_speed[:, me].unsqueeze(-1)
-        return td.set("action", (self.gain * rel / speed).clamp(-1.0, 1.0))
+        own, speed, near = _nearest_opponent(self.env, td)
+        rel = gather_drones(td["positions"][:, self.env.opponents], near) - own
+        return _act(self.env, td, (self.gain * rel / speed).clamp(-1.0, 1.0))
 
 
 class ProportionalNavigationPolicy:
@@ -53,8 +68,9 @@ class ProportionalNavigationPolicy:
     time the learner needs to close the largest per-axis gap at full speed while the target
     keeps its velocity (speed limits are per axis, so each axis closes on its own), capped at
     ``max_lead_time``; on an axis where the target is as fast as the learner the cap applies.
-    The target's velocity is read from the env's dynamics (a scripted controller sees the full
-    state); with ``lead = 0`` this is pure pursuit.
+    The target (each learner's nearest opponent in play) and its velocity are read from the
+    env's dynamics (a scripted controller sees the full state); with ``lead = 0`` this is pure
+    pursuit.
 
     Args:
         env: the env the policy flies in.
@@ -78,18 +94,17 @@ class ProportionalNavigationPolicy:
         self.lead, self.max_lead_time = float(lead), float(max_lead_time)
 
     def __call__(self, td: TensorDictBase) -> TensorDictBase:
-        me = self.env.learner
-        p = td["positions"]
-        rel = p[:, 1 - me] - p[:, me]
-        v_other = self.env.dynamics.velocity[:, 1 - me]
-        speed = self.env.max_speed[:, me].unsqueeze(-1)
+        own, speed, near = _nearest_opponent(self.env, td)
+        others = self.env.opponents
+        rel = gather_drones(td["positions"][:, others], near) - own
+        v_other = gather_drones(self.env.dynamics.velocity[:, others], near)
         closing = speed - torch.sign(rel) * v_other  # per-axis closing speed at full throttle
         t_axis = torch.where(
             closing > 1e-6, rel.abs() / closing.clamp_min(1e-6), self.max_lead_time
         )
         t_go = t_axis.amax(-1, keepdim=True).clamp(max=self.max_lead_time)
         aim = rel + self.lead * v_other * t_go
-        return td.set("action", (self.gain * aim / speed).clamp(-1.0, 1.0))
+        return _act(self.env, td, (self.gain * aim / speed).clamp(-1.0, 1.0))
 
 
 class SetpointFollowerPolicy:
@@ -106,12 +121,12 @@ class SetpointFollowerPolicy:
     def __call__(self, td: TensorDictBase) -> TensorDictBase:
         routes = self.env.routes
         last = routes.shape[1] - 1
-        waypoint = td["waypoint"].squeeze(-1)
+        waypoint = td["waypoint"]  # (N, m)
         target = routes[self.env.route, waypoint.clamp(max=last)]
-        speed = self.env.max_speed[:, DEFENDER]
-        position = td["positions"][:, DEFENDER]
+        speed = self.env.max_speed[:, self.env.team]
+        position = td["positions"][:, self.env.team]
         cmd = follow_route(position, target, waypoint > last, speed, self.env.setpoint_gain)
-        return td.set("action", (cmd / speed.unsqueeze(-1)).clamp(-1.0, 1.0))
+        return _act(self.env, td, (cmd / speed.unsqueeze(-1)).clamp(-1.0, 1.0))
 
 
 @dataclass(frozen=True)
@@ -153,12 +168,13 @@ class NoisyPolicy:
     (seeded by the run).
     """
 
-    def __init__(self, policy, noise_std: float) -> None:
+    def __init__(self, policy, noise_std: float, key: str | tuple[str, ...] = "action") -> None:
         self.policy = policy
         self.noise_std = float(noise_std)
+        self.key = key  # the env's action key
 
     def __call__(self, td: TensorDictBase) -> TensorDictBase:
         td = self.policy(td)
-        action = td["action"]
+        action = td[self.key]
         noise = torch.randn(action.shape, device=action.device, dtype=action.dtype)
-        return td.set("action", (action + self.noise_std * noise).clamp(-1.0, 1.0))
+        return td.set(self.key, (action + self.noise_std * noise).clamp(-1.0, 1.0))

@@ -20,7 +20,7 @@ class EpisodeResults:
 
     Attributes:
         scenario_index: (E,) int64, row of the split.
-        captured: (E,) bool, the episode ended in a capture.
+        captured: (E,) bool, the episode ended in a capture (of every defender).
         grounded: (E,) bool, the episode ended with a drone on the ground.
         returns: (E,) float32, undiscounted return.
         length: (E,) int64, steps.
@@ -31,8 +31,9 @@ class EpisodeResults:
             captured episode can show slightly more than the capture radius).
         visible_fraction: (E,) float32, fraction of the episode's steps that ended with the
             defender inside the attacker's vision ellipsoid.
-        route_fraction: (E,) float32, fraction of its route's setpoints the defender reached.
-        positions: (E, T + 1, 2, 3) float32 m, both drones (attacker, defender) at the start
+        route_fraction: (E,) float32, fraction of its route's setpoints the defender reached (the
+            mean over the defenders of a scenario with several).
+        positions: (E, T + 1, D, 3) float32 m, every drone (attackers, then defenders) at the start
             and after every step, T the longest episode; an episode that ended earlier repeats
             its final positions. None unless ``evaluate(..., record=True)``.
     """
@@ -122,7 +123,7 @@ def evaluate(
     min_distance = td["distance"].squeeze(-1).clone()
     visible_steps = torch.zeros(n, device=env.device)
     positions = [td["positions"]] if record else None
-    waypoint = td["waypoint"].squeeze(-1).clone()
+    waypoint = td["waypoint"].clone()  # (n, m)
     with set_exploration_type(kind):
         while alive.any():
             td = env.step(policy(td))
@@ -134,7 +135,7 @@ def evaluate(
             length += alive.long()
             d = nxt["distance"].squeeze(-1)
             min_distance = torch.where(alive, min_distance.minimum(d), min_distance)
-            waypoint = torch.where(alive, nxt["waypoint"].squeeze(-1), waypoint)
+            waypoint = torch.where(alive.unsqueeze(-1), nxt["waypoint"], waypoint)
             visible_steps += nxt["visible"].squeeze(-1) * a
             if positions is not None:
                 keep = alive.view(n, 1, 1)
@@ -156,6 +157,6 @@ def evaluate(
         term_sums={k: v.cpu() for k, v in terms.items()},
         min_distance=min_distance.cpu(),
         visible_fraction=(visible_steps / length.clamp_min(1)).float().cpu(),
-        route_fraction=(waypoint.float() / env.routes.shape[1]).cpu(),
+        route_fraction=(waypoint.float() / env.routes.shape[1]).mean(-1).cpu(),
         positions=None if positions is None else torch.stack(positions, 1).cpu(),
     )

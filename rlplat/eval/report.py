@@ -46,8 +46,10 @@ def plot_trajectories(
     routes: torch.Tensor,
     picked: list[tuple[int, str]],
     path: Path,
+    attackers: int = 1,
 ) -> None:
-    """3D paths of the picked episodes: attacker, defender, nearby route setpoints, capture."""
+    """3D paths of the picked episodes: attackers (the first ``attackers`` drones of
+    ``positions``), defenders, nearby route setpoints, capture."""
     plt = pyplot()
     cols = min(3, len(picked))
     nrows = math.ceil(len(picked) / cols)
@@ -56,17 +58,18 @@ def plot_trajectories(
         r = rows[e]
         p = positions[e, : r["steps"] + 1].numpy()
         ax = fig.add_subplot(nrows, cols, j + 1, projection="3d")
-        ax.plot(*p[:, 0].T, color="tab:blue", label="attacker")
-        ax.plot(*p[:, 1].T, color="tab:red", label="defender")
-        ax.scatter(*p[0, 0], color="tab:blue", marker="o", s=20)
-        ax.scatter(*p[0, 1], color="tab:red", marker="o", s=20)
+        for i in range(p.shape[1]):
+            role, color = ("attacker", "tab:blue") if i < attackers else ("defender", "tab:red")
+            ax.plot(*p[:, i].T, color=color, label=role if i in (0, attackers) else None)
+            ax.scatter(*p[0, i], color=color, marker="o", s=20)
         lo, hi = p.reshape(-1, 3).min(0) - 10, p.reshape(-1, 3).max(0) + 10
         sp = routes[r["route"]].numpy()
         near = sp[((sp >= lo) & (sp <= hi)).all(1)]
         if len(near):
             ax.scatter(*near.T, color="grey", marker="x", s=18, label="route setpoints")
         if r["captured"]:
-            ax.scatter(*p[-1, 0], color="gold", edgecolor="k", marker="*", s=160, label="capture")
+            star = p[-1, attackers]  # the (first) defender where it was caught
+            ax.scatter(*star, color="gold", edgecolor="k", marker="*", s=160, label="capture")
             outcome = f"captured at {r['time_to_capture_s']:.1f} s"
         else:
             outcome = f"missed, closest {r['min_distance_m']:.1f} m"
@@ -187,7 +190,8 @@ def write_report(
         md += ["![capture rate against speed ratio](capture_vs_speed_ratio.png)", ""]
         md += ["![capture rate per route](capture_by_route.png)", ""]
         if picked and results.positions is not None:
-            plot_trajectories(rows, results.positions, routes, picked, out_dir / "trajectories.png")
+            plot_trajectories(rows, results.positions, routes, picked,
+                              out_dir / "trajectories.png", s.get("attackers", 1))  # fmt: skip
             md += ["Chosen episodes in 3D (best captures and worst outcomes):", ""]
             md += ["![trajectories](trajectories.png)", ""]
     if picked:

@@ -115,6 +115,7 @@ def evaluate_run(
     split: str = "test",
     strict_scenarios: bool = False,
     scenarios_dir: str | Path | None = None,
+    attackers: int | None = None,
     out_dir: str | Path | None = None,
     device: str = "cpu",
     trajectories: int = 6,
@@ -130,6 +131,8 @@ def evaluate_run(
         split: ``test``, ``val`` or ``train``.
         strict_scenarios: refuse a scenario set whose digest differs from the run's.
         scenarios_dir: evaluate on this set instead of the run's.
+        attackers: fly only the first this many attackers of each scenario (None: the run's
+            ``env.attackers``), e.g. a 1-vs-1 run on the defenders of a 2-vs-1 set.
         out_dir: where to write; default ``<run_dir>/eval/<split>-<ckpt or policy>``.
         device: torch device of env and policy.
         trajectories: episodes drawn in 3D (half the fastest captures, half the worst misses).
@@ -164,10 +167,11 @@ def evaluate_run(
     env = build_env(
         cfg, scenarios=scenarios, split=split, num_envs=n, device=device,
         scenario_order="sequential",
+        **({} if attackers is None else {"attackers": attackers}),
     )  # fmt: skip
     if state is not None:
         check_policy_fits(state, cfg, env, path)
-        actor = actor_from_state(state, env.action_spec[0], device)
+        actor = actor_from_state(state, env.drone_action_spec, device, env.group)
     else:
         actor = make_baseline(policy, env)
 
@@ -188,6 +192,8 @@ def evaluate_run(
         "drone": cfg.drone.name,
         "seed": cfg.seed,
         "scenarios": n,
+        "attackers": env.num_attackers,
+        "defenders": env.num_defenders,
         "scenario_dir": str(scenarios.path),
         "scenario_digest": scenarios.digest,
         "run_scenario_digest": expected,
@@ -217,7 +223,14 @@ def route_labels(routes: torch.Tensor) -> list[str]:
 def episode_rows(
     results: EpisodeResults, scenarios: ScenarioSet, split: str, routes: torch.Tensor
 ) -> list[dict[str, Any]]:
-    """One row per scenario (in split order): its id and parameters, then its outcome."""
+    """One row per scenario (in split order): its id and parameters, then its outcome.
+
+    The parameter columns describe the first attacker and defender (index 0 of the drone
+    dimension); a set with k > 1 attackers or m > 1 defenders adds ``attacker{i}_start_x/y/z``
+    and ``attacker{i}_max_speed`` per extra attacker i, ``defender{j}_route``,
+    ``defender{j}_route_direction``, ``defender{j}_strategy``, ``defender{j}_start_x/y/z`` and
+    ``defender{j}_max_speed`` per extra defender j, after ``speed_ratio``.
+    """
     sc = {k: v.tolist() for k, v in scenarios.split(split).items()}
     ids = scenarios.ids[split]
     directions = route_labels(routes)
@@ -228,18 +241,31 @@ def episode_rows(
     rows = []
     for e, i in enumerate(out["scenario_index"]):
         v_a, v_d = sc["attacker_max_speed"][i], sc["defender_max_speed"][i]
+        starts_a, starts_d = sc["attacker_start"][i], sc["defender_start"][i]
+        routes_d, strategies_d = sc["route"][i], sc["defender_strategy"][i]
         captured = out["captured"][e]
-        route = sc["route"][i]
+        extra: dict[str, Any] = {}
+        for a in range(1, len(v_a)):
+            extra.update(_xyz(f"attacker{a}_start", starts_a[a]))
+            extra[f"attacker{a}_max_speed"] = v_a[a]
+        for d in range(1, len(v_d)):
+            extra[f"defender{d}_route"] = routes_d[d]
+            extra[f"defender{d}_route_direction"] = directions[routes_d[d]]
+            extra[f"defender{d}_strategy"] = STRATEGIES[strategies_d[d]]
+            extra.update(_xyz(f"defender{d}_start", starts_d[d]))
+            extra[f"defender{d}_max_speed"] = v_d[d]
+        route = routes_d[0]
         row = {
             "scenario_id": ids[i],
             "route": route,
             "route_direction": directions[route],
-            "defender_strategy": STRATEGIES[sc["defender_strategy"][i]],
-            **_xyz("defender_start", sc["defender_start"][i]),
-            **_xyz("attacker_start", sc["attacker_start"][i]),
-            "defender_max_speed": v_d,
-            "attacker_max_speed": v_a,
-            "speed_ratio": v_a / v_d,
+            "defender_strategy": STRATEGIES[strategies_d[0]],
+            **_xyz("defender_start", starts_d[0]),
+            **_xyz("attacker_start", starts_a[0]),
+            "defender_max_speed": v_d[0],
+            "attacker_max_speed": v_a[0],
+            "speed_ratio": v_a[0] / v_d[0],
+            **extra,
             "captured": captured,
             "grounded": out["grounded"][e],
             "time_to_capture_s": out["time_to_capture"][e] if captured else None,
@@ -326,6 +352,7 @@ def evaluate_from_config(cfg: DictConfig) -> list[str]:
         "split": cfg.split,
         "strict_scenarios": bool(cfg.strict_scenarios),
         "scenarios_dir": cfg.scenarios_dir,
+        "attackers": cfg.attackers,
         "device": cfg.device,
         "trajectories": cfg.trajectories,
         "speed_ratio_bins": list(cfg.speed_ratio_bins),

@@ -1,0 +1,191 @@
+"""Several drones: k attackers and m defenders in one env, a shared policy per learning role."""
+
+import itertools
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import check_env_specs
+
+from rlplat import make_env
+from rlplat.agents.transitions import agent_rows
+from rlplat.errors import ConfigError
+from rlplat.eval.baselines import make_baseline
+from rlplat.eval.episodes import evaluate
+from rlplat.scenarios import ScenarioSet, write_scenario_set
+from tests.conftest import spec_from
+
+SIZES = ("scenario.n_train=32", "scenario.n_val=16", "scenario.n_test=16")
+TEAMS = list(itertools.product((1, 2), (1, 2)))
+
+
+@pytest.fixture(scope="module")
+def team_sets(tmp_path_factory) -> dict[tuple[int, int], ScenarioSet]:
+    """A small scenario set per (attackers, defenders) in {1, 2}^2."""
+    sets = {}
+    for k, m in TEAMS:
+        path = tmp_path_factory.mktemp(f"teams_{k}v{m}")
+        write_scenario_set(
+            spec_from(*SIZES, f"scenario.attackers={k}", f"scenario.defenders={m}"), path
+        )
+        sets[k, m] = ScenarioSet.load(path)
+    return sets
+
+
+@pytest.mark.parametrize(("k", "m"), TEAMS)
+def test_specs_of_every_team_size(team_sets, k, m):
+    env = make_env(scenarios=team_sets[k, m], num_envs=3)
+    check_env_specs(env, seed=0)
+    td = env.reset()
+    assert td["positions"].shape == (3, k + m, 3)
+    assert td["caught"].shape == td["waypoint"].shape == (3, m)
+    # Each attacker sees every defender and its team-mates: eq. 1 with a block per other drone.
+    obs_dim = 3 + 6 * (m + k - 1)
+    if k == 1:
+        assert env.group is None and td["observation"].shape == (3, obs_dim)
+    else:
+        assert env.group == "attacker" and env.action_key == ("attacker", "action")
+        assert td["attacker", "observation"].shape == (3, k, obs_dim)
+        assert td["attacker", "distance"].shape == (3, k, 1)
+
+
+@pytest.mark.parametrize(("k", "m"), [(2, 1), (1, 2), (2, 2)])
+def test_defender_learner_specs_and_refusal(team_sets, k, m):
+    if m > 1:
+        with pytest.raises(ConfigError, match=r"scenario.defenders: a learning defender flies"):
+            make_env("drone=defender_v1", scenarios=team_sets[k, m])
+        return
+    env = make_env("drone=defender_v1", scenarios=team_sets[k, m], num_envs=3)
+    check_env_specs(env, seed=0)
+    assert env.group is None and env.reset()["observation"].shape == (3, 6 + 6 * k)
+
+
+@pytest.mark.parametrize(("k", "m"), TEAMS)
+def test_same_seed_same_rollout(team_sets, k, m):
+    def run(seed):
+        env = make_env("env.scenario_order=shuffled", scenarios=team_sets[k, m], num_envs=4)
+        env.set_seed(seed)
+        torch.manual_seed(0)  # the random actions
+        return env.rollout(30, break_when_any_done=False)
+
+    a, b, c = run(1), run(1), run(2)
+    assert torch.equal(a["next", "positions"], b["next", "positions"])
+    assert not torch.equal(a["scenario_index"], c["scenario_index"])
+
+
+def test_the_observation_holds_team_mates_relative_state(team_sets):
+    env = make_env(scenarios=team_sets[2, 1], num_envs=2)
+    td = env.reset()
+    p = td["positions"]
+    obs = td["attacker", "observation"]  # [v_own, p_d - p_a, v_d - v_a, p_mate - p_a, v_mate - ...]
+    torch.testing.assert_close(obs[:, 0, 3:6], p[:, 2] - p[:, 0])
+    torch.testing.assert_close(obs[:, 1, 3:6], p[:, 2] - p[:, 1])
+    torch.testing.assert_close(obs[:, 0, 9:12], p[:, 1] - p[:, 0])
+    torch.testing.assert_close(obs[:, 1, 9:12], p[:, 0] - p[:, 1])
+
+
+def test_a_caught_defender_leaves_play_and_the_last_capture_ends_the_episode(team_sets):
+    env = make_env(scenarios=team_sets[2, 2], split="val", num_envs=16)
+    env.set_seed(0)
+    rollout = env.rollout(600, make_baseline("pure_pursuit", env), break_when_any_done=False)
+    caught, done = rollout["next", "caught"], rollout["next", "done"].squeeze(-1)
+    partly = caught.any(-1) & ~caught.all(-1) & ~done
+    assert partly.any(), "pure pursuit by two attackers should catch one defender before both"
+    # The episode goes on after the first capture and ends (terminated) on the second.
+    grounded = (rollout["next", "positions"][..., 2] <= 0).any(-1)
+    assert torch.equal(rollout["next", "terminated"].squeeze(-1), caught.all(-1) | grounded)
+    assert (rollout["next", "captured"].squeeze(-1) == caught.all(-1)).all()
+    # A caught defender brakes to a hover where it is while the episode goes on.
+    first = partly & ~torch.cat([partly[:, :1] & False, partly[:, :-1]], 1)
+    checked = 0
+    for env_i, t in first.nonzero().tolist():
+        if done[env_i, t : t + 40].any() or t + 40 > done.shape[1]:
+            continue
+        j = int(caught[env_i, t].int().argmax())
+        p = rollout["next", "positions"][env_i, t : t + 40, 2 + j]
+        assert (p[39] - p[30]).norm() < 0.1 * (p[9] - p[0]).norm()
+        checked += 1
+    assert checked
+
+
+def test_team_transitions_are_one_row_per_drone():
+    envs, steps, agents = 2, 3, 2
+    obs = torch.arange(envs * steps * agents * 4, dtype=torch.float32)
+    obs = obs.reshape(envs, steps, agents, 4)
+    done = torch.zeros(envs, steps, 1, dtype=torch.bool)
+    done[1, 2] = True
+
+    def team(x, k=1):
+        return {"observation": x, "action": x[..., :3], "distance": x[..., :1] * k}
+
+    batch = TensorDict(
+        {
+            "attacker": TensorDict(team(obs), batch_size=(envs, steps, agents)),
+            "next": {
+                "attacker": TensorDict(
+                    {**team(obs + 1, 2), "reward": obs[..., :1] * 10},
+                    batch_size=(envs, steps, agents),
+                ),
+                "done": done,
+                "terminated": done,
+            },
+        },
+        batch_size=(envs, steps),
+    )
+    rows = agent_rows(batch, "attacker")
+    assert rows.shape == (envs * agents, steps)
+    for e, a in itertools.product(range(envs), range(agents)):
+        row = rows[e * agents + a]
+        assert torch.equal(row["observation"], obs[e, :, a])
+        assert torch.equal(row["next", "reward"], obs[e, :, a, :1] * 10)
+        assert torch.equal(row["next", "distance"], (obs[e, :, a, :1] + 1) * 2)
+        assert torch.equal(row["next", "done"], done[e])
+
+
+def test_pure_pursuit_team_catches_more_than_random(team_sets):
+    env = make_env(scenarios=team_sets[2, 1], split="val", num_envs=16)
+    chase = evaluate(env, make_baseline("pure_pursuit", env))
+
+    def random(td):
+        return td.update(env.full_action_spec.rand())
+
+    torch.manual_seed(0)
+    assert chase.capture_rate > evaluate(env, random).capture_rate
+
+
+@pytest.mark.slow
+def test_a_learned_two_vs_one_policy_beats_a_random_one(tmp_path):
+    from omegaconf import OmegaConf
+
+    from rlplat.agents import train
+    from rlplat.config import compose_config
+    from rlplat.envs.factory import build_env
+    from rlplat.scenarios import ScenarioSpec
+    from tests.test_learning import EASY
+
+    spec = compose_config("scenarios", ["out_dir=unused", *EASY, "scenario.attackers=2"])
+    write_scenario_set(ScenarioSpec.from_dict(OmegaConf.to_container(spec.scenario)), tmp_path)
+    cfg = compose_config(
+        "train",
+        [
+            f"scenarios_dir={tmp_path}",
+            "env.time_limit=20",
+            "train.max_minutes=1.5",
+            "train.total_frames=30000",
+            "train.eval_every_frames=8192",
+            "train.progress=false",
+            "algo.init_policy=random",  # nothing scripted: what it catches, it learned
+            "algo.init_random_frames=4096",
+            "algo.compile=false",
+        ],
+    )
+    summary = train(cfg, run_dir=tmp_path / "run")
+    assert summary["attackers"] == 2
+    scenarios = ScenarioSet.load(tmp_path)
+    env = build_env(
+        cfg, scenarios=scenarios, split="val", num_envs=len(scenarios.split("val")),
+        scenario_order="sequential",
+    )  # fmt: skip
+    torch.manual_seed(0)
+    random = evaluate(env, lambda td: td.update(env.full_action_spec.rand())).capture_rate
+    assert summary["best_val_capture_rate"] >= random + 0.2, (summary, random)
