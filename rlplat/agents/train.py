@@ -276,7 +276,12 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
         prefilled = _prefill(buffer, train_env, env, algo, keep)
         if resume_state is None:  # a resumed run has counted those frames already
             counters["frames"] += prefilled
-        log.info("replay buffer filled with %d frames of noisy %s", len(buffer), algo.init_policy)
+        log.info(
+            "replay buffer filled with %d frames of noisy %s (%d transitions)",
+            prefilled,
+            algo.init_policy,
+            len(buffer),
+        )
     next_eval = (
         counters["frames"] // cfg.train.eval_every_frames + 1
     ) * cfg.train.eval_every_frames

@@ -234,11 +234,6 @@ class PursuitEnv(EnvBase):
         self.max_speed = torch.ones(num_envs, k + m, device=self.device)
         self._make_specs(num_envs)
 
-    def team_key(self, name: str) -> str | tuple[str, str]:
-        """Where the learners' entry ``name`` sits: ``name`` for a lone learner, ``(group,
-        name)`` for a team."""
-        return name if self.group is None else (self.group, name)
-
     @property
     def drone_action_spec(self) -> Bounded:
         """One drone's action spec, (action.dim,): the bounds of a policy network's output."""
