@@ -90,11 +90,11 @@ class _Observation:
 
     def __call__(self, view: DroneView) -> Tensor:
         """The observation (*B, dim) float32."""
-        others = [self._other(view, view.other_position, view.other_velocity)]
+        blocks = self._other(view, view.other_position, view.other_velocity)
         if self.mates:
-            others.append(self._other(view, view.mate_position, view.mate_velocity))
-        blocks = torch.cat(others, -2).flatten(-2)  # (*B, (M + K) * block)
-        return torch.cat([*self._own(view), blocks], -1)
+            mates = self._other(view, view.mate_position, view.mate_velocity)
+            blocks = torch.cat([blocks, mates], -2)
+        return torch.cat([*self._own(view), blocks.flatten(-2)], -1)  # (*B, dim)
 
     def _own(self, view: DroneView) -> list[Tensor]:
         """The drone's own features, each (*B, 3)."""

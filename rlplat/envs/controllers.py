@@ -42,6 +42,8 @@ def nearest(own: Tensor, others: Tensor, in_play: Tensor | None = None) -> Tenso
     Returns:
         (N, K) int64 indices into the M other drones.
     """
+    if others.shape[1] == 1:  # nothing to choose from
+        return torch.zeros(own.shape[:2], dtype=torch.int64, device=own.device)
     distance = (others.unsqueeze(1) - own.unsqueeze(2)).norm(dim=-1)  # (N, K, M)
     if in_play is not None:
         pool = in_play | ~in_play.any(-1, keepdim=True)
@@ -51,6 +53,8 @@ def nearest(own: Tensor, others: Tensor, in_play: Tensor | None = None) -> Tenso
 
 def gather_drones(x: Tensor, index: Tensor) -> Tensor:
     """``x[n, index[n, k]]`` for per-drone values x (N, M, ...) and index (N, K): (N, K, ...)."""
+    if x.shape[1] == 1:  # every index is 0
+        return x.expand(*index.shape, *x.shape[2:])
     flat = index.reshape(*index.shape, *([1] * (x.ndim - 2))).expand(*index.shape, *x.shape[2:])
     return x.gather(1, flat)
 

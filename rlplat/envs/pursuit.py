@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Literal, NamedTuple, Protocol
 
 import torch
@@ -375,12 +376,12 @@ class PursuitEnv(EnvBase):
         self.caught = self.caught | newly
         sight = self._sight(rel)
         grounded = (p[..., 2] <= self.ground_altitude).any(-1)
+        captured = newly
         if self.learner == ATTACKER:  # a capture is the team's; route terms read the defenders'
-            captured = newly.any(-1, keepdim=True).expand(n, t)
-            progress, reached = progress.sum(-1, keepdim=True), reached.any(-1, keepdim=True)
-            progress, reached = progress.expand(n, t), reached.expand(n, t)
-        else:
-            captured = newly
+            if self.num_defenders > 1:
+                captured = newly.any(-1, keepdim=True)
+                progress, reached = progress.sum(-1, keepdim=True), reached.any(-1, keepdim=True)
+            captured, progress, reached = (x.expand(n, t) for x in (captured, progress, reached))
         total, terms = self.reward_fn(
             RewardContext(
                 sight.team_distance,
@@ -399,8 +400,12 @@ class PursuitEnv(EnvBase):
         flown = (self.waypoint >= self.routes.shape[1]) | self.caught
         truncated = (self.step_count >= self.max_steps) | flown.all(-1)
         truncated = truncated & ~terminated
-        rewards = {"reward": total.mean(-1, keepdim=True)}
-        rewards["reward_terms"] = {k: x.mean(-1, keepdim=True) for k, x in terms.items()}
+
+        def team_mean(x: Tensor) -> Tensor:  # (N, K) -> (N, 1)
+            return x if t == 1 else x.mean(-1, keepdim=True)
+
+        rewards = {"reward": team_mean(total)}
+        rewards["reward_terms"] = {k: team_mean(x) for k, x in terms.items()}
         return self._outputs(
             sight,
             all_caught.unsqueeze(-1),
@@ -425,10 +430,10 @@ class PursuitEnv(EnvBase):
     def _sight(self, rel: Tensor) -> _Sight:
         """Distances and visibility of the pairs ``rel`` (N, k, m, 3), among the defenders in
         play (all of them once every one is caught)."""
-        distance = rel.norm(dim=-1)
-        in_play = (~self.caught | self.caught.all(-1, keepdim=True)).unsqueeze(1)
-        far = distance.masked_fill(~in_play, float("inf"))
-        seen = inside_ellipsoid(rel, self.semi_axes) & in_play
+        far, seen = rel.norm(dim=-1), inside_ellipsoid(rel, self.semi_axes)
+        if self.num_defenders > 1:  # a lone defender is in play until the episode ends
+            in_play = (~self.caught | self.caught.all(-1, keepdim=True)).unsqueeze(1)
+            far, seen = far.masked_fill(~in_play, float("inf")), seen & in_play
         per = -1 if self.learner == ATTACKER else 1  # reduce over the opponents
         overall = far.flatten(1).amin(-1), seen.flatten(1).any(-1)
         return _Sight(far.amin(per), seen.any(per), *overall)
@@ -468,10 +473,10 @@ class PursuitEnv(EnvBase):
         other_v = v[:, self.opponents].unsqueeze(1).expand(n, t, -1, 3)
         target = self._target()[0]
         setpoint = target if self.learner != ATTACKER else target[:, :1].expand(n, t, 3)
-        view = DroneView(
-            own_p, own_v, other_p, other_v, setpoint,
-            own_p[:, self._mate_index], own_v[:, self._mate_index],
-        )  # fmt: skip
+        view = DroneView(own_p, own_v, other_p, other_v, setpoint)
+        if t > 1:
+            view = replace(view, mate_position=own_p[:, self._mate_index],
+                           mate_velocity=own_v[:, self._mate_index])  # fmt: skip
         team = {"observation": self.obs_fn(view)}
         out = {
             "distance": sight.distance.unsqueeze(-1),
