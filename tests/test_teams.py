@@ -189,3 +189,21 @@ def test_a_learned_two_vs_one_policy_beats_a_random_one(tmp_path):
     torch.manual_seed(0)
     random = evaluate(env, lambda td: td.update(env.full_action_spec.rand())).capture_rate
     assert summary["best_val_capture_rate"] >= random + 0.2, (summary, random)
+
+
+def test_env_attackers_flies_the_first_attackers_of_each_scenario(team_sets):
+    one = make_env("env.attackers=1", scenarios=team_sets[2, 1], split="val", num_envs=4)
+    two = make_env(scenarios=team_sets[2, 1], split="val", num_envs=4)
+    first, both = one.reset()["positions"], two.reset()["positions"]
+    assert one.group is None and first.shape == (4, 2, 3)
+    assert torch.equal(first, both[:, [0, 2]])  # the first attacker, the same defender
+    for bad, error in (("3", "the scenarios have 2"), ("0", "a positive integer or null")):
+        with pytest.raises(ConfigError, match=f"env.attackers: .*{error}"):
+            make_env(f"env.attackers={bad}", scenarios=team_sets[2, 1])
+
+
+def test_the_gym_adapter_refuses_a_team(team_sets):
+    from rlplat import make_gym_env
+
+    with pytest.raises(ConfigError, match=r"gym adapter: flies one learning drone"):
+        make_gym_env(scenarios=team_sets[2, 1])
