@@ -207,3 +207,23 @@ def test_the_gym_adapter_refuses_a_team(team_sets):
 
     with pytest.raises(ConfigError, match=r"gym adapter: flies one learning drone"):
         make_gym_env(scenarios=team_sets[2, 1])
+
+
+def test_a_team_run_and_a_lone_run_evaluate_on_the_same_defenders(team_sets, tmp_path):
+    import csv
+
+    from rlplat.eval.run import evaluate_run
+    from tests.test_train import tiny_run
+
+    lone = tiny_run(team_sets[1, 1], tmp_path / "1v1")["run_dir"]
+    team = tiny_run(team_sets[2, 1], tmp_path / "2v1")["run_dir"]
+    kwargs = dict(plots=False, split="val")
+    pair = evaluate_run(team, **kwargs).summary
+    alone = evaluate_run(
+        lone, scenarios_dir=team_sets[2, 1].path, attackers=1, out_dir=tmp_path / "e", **kwargs
+    )
+    assert (pair["attackers"], alone.summary["attackers"]) == (2, 1)
+    assert pair["scenario_digest"] == alone.summary["scenario_digest"]
+    with open(alone.out_dir / "episodes.csv") as f:
+        columns = next(csv.reader(f))
+    assert "attacker_max_speed" in columns and "attacker1_max_speed" not in columns

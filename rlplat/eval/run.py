@@ -182,7 +182,7 @@ def evaluate_run(
     log.info("%s on %d %s scenarios in %.1f s", name, n, split, wall)
 
     routes = env.routes.cpu()
-    rows = episode_rows(results, scenarios, split, routes)
+    rows = episode_rows(results, scenarios, split, routes, env.num_attackers)
     summary = {
         "policy": policy,
         "name": name,
@@ -221,7 +221,11 @@ def route_labels(routes: torch.Tensor) -> list[str]:
 
 
 def episode_rows(
-    results: EpisodeResults, scenarios: ScenarioSet, split: str, routes: torch.Tensor
+    results: EpisodeResults,
+    scenarios: ScenarioSet,
+    split: str,
+    routes: torch.Tensor,
+    attackers: int | None = None,
 ) -> list[dict[str, Any]]:
     """One row per scenario (in split order): its id and parameters, then its outcome.
 
@@ -229,7 +233,8 @@ def episode_rows(
     dimension); a set with k > 1 attackers or m > 1 defenders adds ``attacker{i}_start_x/y/z``
     and ``attacker{i}_max_speed`` per extra attacker i, ``defender{j}_route``,
     ``defender{j}_route_direction``, ``defender{j}_strategy``, ``defender{j}_start_x/y/z`` and
-    ``defender{j}_max_speed`` per extra defender j, after ``speed_ratio``.
+    ``defender{j}_max_speed`` per extra defender j, after ``speed_ratio``. ``attackers``: how
+    many of each scenario's attackers flew (``env.attackers``; None: all).
     """
     sc = {k: v.tolist() for k, v in scenarios.split(split).items()}
     ids = scenarios.ids[split]
@@ -245,7 +250,7 @@ def episode_rows(
         routes_d, strategies_d = sc["route"][i], sc["defender_strategy"][i]
         captured = out["captured"][e]
         extra: dict[str, Any] = {}
-        for a in range(1, len(v_a)):
+        for a in range(1, len(v_a) if attackers is None else attackers):
             extra.update(_xyz(f"attacker{a}_start", starts_a[a]))
             extra[f"attacker{a}_max_speed"] = v_a[a]
         for d in range(1, len(v_d)):
