@@ -231,17 +231,26 @@ def test_same_seed_same_rollout(scenarios, order):
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    ("nn_weight", "steps", "atol"),
+    ("nn_weight", "team", "steps", "atol"),
     # Fused kernels round differently. The network-flown defenders (half the default set) feed
     # that back through the closed loop and the last bits grow about 10x every 20 steps, so
     # with them the rollouts are held together over a shorter horizon.
-    [(0, 150, 1e-4), (1, 40, 1e-3)],
-    ids=["setpoints", "with-nn-defenders"],
+    [(0, (1, 1), 150, 1e-4), (1, (1, 1), 40, 1e-3), (0, (2, 2), 150, 1e-4)],
+    ids=["setpoints", "with-nn-defenders", "2v2-setpoints"],
 )
-def test_compiled_step_flies_like_the_eager_one(tmp_path, nn_weight, steps, atol):
+def test_compiled_step_flies_like_the_eager_one(tmp_path, nn_weight, team, steps, atol):
     from tests.conftest import spec_from
 
-    write_scenario_set(spec_from(*SIZES, f"scenario.strategy_mix.nn={nn_weight}"), tmp_path)
+    k, m = team
+    write_scenario_set(
+        spec_from(
+            *SIZES,
+            f"scenario.strategy_mix.nn={nn_weight}",
+            f"scenario.attackers={k}",
+            f"scenario.defenders={m}",
+        ),
+        tmp_path,
+    )
 
     def run(compile_step):
         env = make_env(
