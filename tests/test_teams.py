@@ -49,15 +49,33 @@ def test_specs_of_every_team_size(team_sets, k, m):
         assert td["attacker", "distance"].shape == (3, k, 1)
 
 
-@pytest.mark.parametrize(("k", "m"), [(2, 1), (1, 2), (2, 2)])
-def test_defender_learner_specs_and_refusal(team_sets, k, m):
-    if m > 1:
-        with pytest.raises(ConfigError, match=r"scenario.defenders: a learning defender flies"):
-            make_env("drone=defender_v1", scenarios=team_sets[k, m])
-        return
+@pytest.mark.parametrize(("k", "m"), TEAMS)
+def test_specs_of_every_defender_team(team_sets, k, m):
     env = make_env("drone=defender_v1", scenarios=team_sets[k, m], num_envs=3)
     check_env_specs(env, seed=0)
-    assert env.group is None and env.reset()["observation"].shape == (3, 6 + 6 * k)
+    td = env.reset()
+    # route_state: own velocity, way to the setpoint, then each attacker's and team-mate's block.
+    obs_dim = 6 + 6 * (k + m - 1)
+    if m == 1:
+        assert env.group is None and td["observation"].shape == (3, obs_dim)
+    else:
+        assert env.group == "defender" and env.action_key == ("defender", "action")
+        assert td["defender", "observation"].shape == (3, m, obs_dim)
+        assert td["defender", "caught"].shape == (3, m, 1)
+
+
+def test_a_caught_learning_defender_stops_and_earns_nothing_more(team_sets):
+    env = make_env("drone=defender_v1", scenarios=team_sets[2, 2], split="val", num_envs=16)
+    env.set_seed(0)
+    hover = env.rollout(300, lambda td: td.update(env.full_action_spec.zero()),
+                        break_when_any_done=False)  # fmt: skip
+    nxt = hover["next"]
+    caught, before = nxt["defender", "caught"], hover["defender", "caught"]
+    assert (before & ~nxt["done"].unsqueeze(-1)).any(), "some defender should be caught early"
+    out = before & ~hover["done"].unsqueeze(-1)  # caught before the step, same episode
+    assert (nxt["defender", "reward"][out] == 0).all()
+    assert (nxt["defender", "reward"][~caught] != 0).any()
+    assert torch.equal(nxt["caught"], caught.squeeze(-1))
 
 
 @pytest.mark.parametrize(("k", "m"), TEAMS)
@@ -140,6 +158,36 @@ def test_team_transitions_are_one_row_per_drone():
         assert torch.equal(row["next", "reward"], obs[e, :, a, :1] * 10)
         assert torch.equal(row["next", "distance"], (obs[e, :, a, :1] + 1) * 2)
         assert torch.equal(row["next", "done"], done[e])
+
+
+def test_a_caught_drone_ends_its_own_rows():
+    envs, steps, agents = 1, 4, 2
+    obs = torch.zeros(envs, steps, agents, 3)
+    caught = torch.zeros(envs, steps + 1, agents, 1, dtype=torch.bool)
+    caught[0, 2:, 1] = True  # drone 1 is caught in step 1 (entries after it say so)
+    done = torch.zeros(envs, steps, 1, dtype=torch.bool)
+
+    def team(t, extra=None):
+        x = {"observation": obs, "action": obs, "distance": obs[..., :1], "caught": caught[:, t]}
+        return TensorDict({**x, **(extra or {})}, batch_size=(envs, steps, agents))
+
+    batch = TensorDict(
+        {
+            "defender": team(slice(0, steps)),
+            "next": {
+                "defender": team(slice(1, None), {"reward": obs[..., :1]}),
+                "done": done,
+                "terminated": done,
+            },
+        },
+        batch_size=(envs, steps),
+    )
+    rows = agent_rows(batch, "defender")
+    assert rows["alive"].squeeze(-1).tolist() == [[True] * 4, [True, True, False, False]]
+    assert rows["next", "terminated"].squeeze(-1).tolist() == [
+        [False] * 4,
+        [False, True, True, True],
+    ]
 
 
 def test_pure_pursuit_team_catches_more_than_random(team_sets):

@@ -424,7 +424,11 @@ def _store(buffer, batch, algo, keep, group: str | None) -> None:
         batch = agent_rows(batch, group)
     transitions = shape_rewards(batch, algo.potential_key, algo.potential_weight, algo.gamma)
     transitions = n_step_transitions(transitions, algo.n_steps, algo.gamma)
-    buffer.extend(transitions.select(*keep).reshape(-1))
+    if group is None:
+        buffer.extend(transitions.select(*keep).reshape(-1))
+        return
+    flat = transitions.select(*keep, "alive").reshape(-1)
+    buffer.extend(flat[flat["alive"].squeeze(-1)].exclude("alive"))  # a caught drone is out
 
 
 def _episode_metrics(batch, terms: list[str]) -> dict[str, float]:

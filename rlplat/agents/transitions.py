@@ -79,7 +79,9 @@ def agent_rows(batch: TensorDictBase, group: str) -> TensorDictBase:
     ``observation``, ``action`` and ``distance`` of each drone, ``("next", ...)`` its next
     observation, reward and distance, and the env's ``done`` and ``terminated`` (the team's
     episode ends at once). Each row is one drone's trajectory, so the n-step and shaping steps
-    apply unchanged.
+    apply unchanged. A team whose drones can be caught (``(group, "caught")``, defenders) ends
+    a drone's own episode when it is caught (``terminated``); ``alive`` (envs * K, T, 1) says
+    which transitions start with the drone still in play (the others are not its to learn).
     """
     envs, steps = batch.shape
     team, nxt = batch[group], batch["next"]
@@ -88,17 +90,23 @@ def agent_rows(batch: TensorDictBase, group: str) -> TensorDictBase:
     def shared(x: torch.Tensor) -> torch.Tensor:  # (envs, T, 1) -> (envs, T, K, 1)
         return x.unsqueeze(2).expand(envs, steps, agents, *x.shape[2:])
 
+    done, terminated = shared(nxt["done"]), shared(nxt["terminated"])
+    alive = torch.ones_like(done)
+    if "caught" in team:
+        caught = nxt[group, "caught"]
+        done, terminated, alive = done | caught, terminated | caught, ~team["caught"]
     rows = TensorDict(
         {
             "observation": team["observation"],
             "action": team["action"],
             "distance": team["distance"],
+            "alive": alive,
             "next": {
                 "observation": nxt[group, "observation"],
                 "reward": nxt[group, "reward"],
                 "distance": nxt[group, "distance"],
-                "done": shared(nxt["done"]),
-                "terminated": shared(nxt["terminated"]),
+                "done": done,
+                "terminated": terminated,
             },
         },
         batch_size=(envs, steps, agents),

@@ -67,8 +67,9 @@ class ScenarioSampler:
 class _Sight(NamedTuple):
     """What the drones see of each other after a step or a reset."""
 
-    team_distance: Tensor  # (N, K) m, each learner to its nearest opponent in play
-    team_visible: Tensor  # (N, K) bool, a pair of the learner with an opponent in play in view
+    team_distance: Tensor  # (N, K) m, each learner to its nearest opponent (for an attacker,
+    #                        the nearest defender in play)
+    team_visible: Tensor  # (N, K) bool, the learner sees (attacker) or is seen (defender)
     distance: Tensor  # (N,) m, the least distance of a pair in play
     visible: Tensor  # (N,) bool, some pair in play in view
 
@@ -84,29 +85,31 @@ class PursuitEnv(EnvBase):
     period and reports what happened.
 
     Drones: the scenarios' k attackers, then their m defenders (``positions`` in that order).
-    The drones of the learner's role share one policy. A lone learner (k = 1 for an attacker;
-    a learning defender always flies alone) reads and writes root keys; a team of K > 1 follows
-    TorchRL's multi-agent layout: its entries sit under the group key ``"attacker"`` with an
-    agent dimension, and the done flags stay at the root (the whole env ends at once).
+    The drones of the learner's role share one policy. A lone learner reads and writes root
+    keys; a team of K > 1 follows TorchRL's multi-agent layout: its entries sit under the group
+    key of its role (``"attacker"`` or ``"defender"``) with an agent dimension, and the done
+    flags stay at the root (the whole env ends at once).
 
     Observation:
-        ``observation`` (N, obs.dim), or ``("attacker", "observation")`` (N, K, obs.dim) for a
+        ``observation`` (N, obs.dim), or ``(group, "observation")`` (N, K, obs.dim) for a
         team, from the observation component: the drone's own features, then each opponent's
-        and each team-mate's. A team also gets ``("attacker", "distance")`` (N, K, 1), each
-        drone's distance to the nearest defender in play. Also ``distance`` (N, 1) m, the least
+        and each team-mate's. A team also gets ``(group, "distance")`` (N, K, 1), each drone's
+        distance to its nearest opponent (an attacker's: the nearest defender in play), and a
+        defender team ``("defender", "caught")`` (N, K, 1). Also ``distance`` (N, 1) m, the least
         attacker-defender distance among the defenders in play, ``visible`` (N, 1) bool (a
         defender in play inside some attacker's vision ellipsoid), ``captured`` (N, 1) bool
         (every defender caught), ``caught`` (N, m) bool per defender, ``positions``
         (N, k + m, 3) m, ``waypoint`` (N, m) each defender's next setpoint, ``scenario_index``
         (N, 1) row of the split.
     Action:
-        ``action`` (N, action.dim), or ``("attacker", "action")`` (N, K, action.dim), in
-        [-1, 1], mapped by the action component.
+        ``action`` (N, action.dim), or ``(group, "action")`` (N, K, action.dim), in [-1, 1],
+        mapped by the action component.
     Reward:
         per learning drone, the reward component's weighted sum of terms: ``reward`` (N, 1) and
         each weighted term ``("reward_terms", name)`` (N, 1) for a lone learner. A team gets
-        ``("attacker", "reward")`` (N, K, 1), and the root ``reward`` and ``reward_terms`` are the
-        team's means (what returns and episode metrics report).
+        ``(group, "reward")`` (N, K, 1), and the root ``reward`` and ``reward_terms`` are the
+        team's means (what returns and episode metrics report). A defender earns nothing after
+        the step it is caught in.
     Episode end:
         a defender is caught when some attacker's closest approach to it during a step is <=
         capture_radius; a caught defender stops, hovers where it was caught and is out of play
@@ -171,10 +174,6 @@ class PursuitEnv(EnvBase):
             if attackers > k:
                 raise ConfigError(f"env.attackers: {attackers}, the scenarios have {k} (at most)")
             k = attackers
-        if learner == "defender" and m > 1:
-            raise ConfigError(
-                f"scenario.defenders: a learning defender flies alone, got {m} (valid: 1)"
-            )
         if dynamics.position.shape[1] != k + m:
             raise ValueError(
                 f"dynamics: {dynamics.position.shape[1]} drones, the scenarios have {k + m}"
@@ -263,6 +262,8 @@ class PursuitEnv(EnvBase):
         team_obs = {"observation": real(t, self.obs_fn.dim)}
         if self.group is not None:
             team_obs["distance"] = real(t, 1)
+        if self.group == ROLES[DEFENDER]:
+            team_obs["caught"] = flag(t, 1)
         self.observation_spec = Composite(
             **team(**team_obs),
             distance=real(1),
@@ -354,13 +355,14 @@ class PursuitEnv(EnvBase):
         target, route_done = self._target()
         own = self.action_fn(action.reshape(n, t, -1), self.max_speed[:, self.team])
         if self.learner == ATTACKER:
-            commands = (own, self._defender_command(p, v, target, route_done))
+            attack, defend = own, self._defender_command(p, v, target, route_done)
         else:
-            commands = (self._attacker_command(p), own)
-        rel_before = self._relative(p)
+            attack, defend = self._attacker_command(p), own
         in_play = ~self.caught
+        defend = defend.masked_fill(~in_play.unsqueeze(-1), 0.0)  # a caught defender holds
+        rel_before = self._relative(p)
         to_target = (target - p[:, self.defenders]).norm(dim=-1)
-        self.dynamics.advance(torch.cat(commands, 1), self.control_period)
+        self.dynamics.advance(torch.cat([attack, defend], 1), self.control_period)
         p = self.dynamics.position
         self.step_count = self.step_count + 1
         # A defender moves on once it is within the acceptance radius of its setpoint.
@@ -393,6 +395,9 @@ class PursuitEnv(EnvBase):
                 setpoint_reached=reached,
             )
         )
+        if self.learner != ATTACKER:  # a defender caught before this step is out: no reward
+            total = total.masked_fill(~in_play, 0.0)
+            terms = {k: x.masked_fill(~in_play, 0.0) for k, x in terms.items()}
         all_caught = self.caught.all(-1)
         terminated = all_caught | grounded
         if self.terminate_out_of_view:
@@ -430,16 +435,18 @@ class PursuitEnv(EnvBase):
     def _sight(self, rel: Tensor) -> _Sight:
         """Distances and visibility of the pairs ``rel`` (N, k, m, 3), among the defenders in
         play (all of them once every one is caught)."""
-        far, seen = rel.norm(dim=-1), inside_ellipsoid(rel, self.semi_axes)
+        distance, visible = rel.norm(dim=-1), inside_ellipsoid(rel, self.semi_axes)
+        far, seen = distance, visible
         if self.num_defenders > 1:  # a lone defender is in play until the episode ends
             in_play = (~self.caught | self.caught.all(-1, keepdim=True)).unsqueeze(1)
             far, seen = far.masked_fill(~in_play, float("inf")), seen & in_play
-        per = -1 if self.learner == ATTACKER else 1  # reduce over the opponents
         overall = far.flatten(1).amin(-1), seen.flatten(1).any(-1)
-        return _Sight(far.amin(per), seen.any(per), *overall)
+        if self.learner == ATTACKER:  # each attacker: the nearest defender in play
+            return _Sight(far.amin(-1), seen.any(-1), *overall)
+        return _Sight(distance.amin(1), visible.any(1), *overall)  # each defender: its attackers
 
     def _defender_command(self, p: Tensor, v: Tensor, target: Tensor, route_done: Tensor):
-        """Scripted defenders: (N, m, 3) m/s; a caught defender holds where it is."""
+        """Scripted defenders: (N, m, 3) m/s."""
         speed = self.max_speed[:, self.defenders]
         own_p, own_v = p[:, self.defenders], v[:, self.defenders]
         command = follow_route(own_p, target, route_done, speed, self.setpoint_gain)
@@ -454,7 +461,7 @@ class PursuitEnv(EnvBase):
             )
             learned = self.action_fn(self.defender_network(view), speed)
             command = torch.where((self.nn_defender & ~route_done).unsqueeze(-1), learned, command)
-        return command.masked_fill(self.caught.unsqueeze(-1), 0.0)
+        return command
 
     def _attacker_command(self, p: Tensor) -> Tensor:
         """Scripted attackers: pure pursuit of the nearest defender in play, (N, k, 3) m/s."""
@@ -492,6 +499,8 @@ class PursuitEnv(EnvBase):
             out.update({k: x[:, 0] for k, x in team.items()})
         else:
             team["distance"] = sight.team_distance.unsqueeze(-1)
+            if self.learner == DEFENDER:
+                team["caught"] = self.caught.unsqueeze(-1)
             if team_reward is not None:
                 team["reward"] = team_reward
             out[self.group] = team

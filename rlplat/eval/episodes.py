@@ -31,8 +31,9 @@ class EpisodeResults:
             captured episode can show slightly more than the capture radius).
         visible_fraction: (E,) float32, fraction of the episode's steps that ended with the
             defender inside the attacker's vision ellipsoid.
-        route_fraction: (E,) float32, fraction of its route's setpoints the defender reached (the
-            mean over the defenders of a scenario with several).
+        defender_route_fraction: (E, m) float32, fraction of its route's setpoints each
+            defender reached.
+        defender_caught: (E, m) bool, which defenders were caught by the episode's end.
         positions: (E, T + 1, D, 3) float32 m, every drone (attackers, then defenders) at the start
             and after every step, T the longest episode; an episode that ended earlier repeats
             its final positions. None unless ``evaluate(..., record=True)``.
@@ -47,7 +48,8 @@ class EpisodeResults:
     term_sums: dict[str, torch.Tensor]
     min_distance: torch.Tensor
     visible_fraction: torch.Tensor
-    route_fraction: torch.Tensor
+    defender_route_fraction: torch.Tensor
+    defender_caught: torch.Tensor
     positions: torch.Tensor | None = None
 
     @property
@@ -59,10 +61,16 @@ class EpisodeResults:
         return self.returns.mean().item()
 
     @property
+    def route_fraction(self) -> torch.Tensor:
+        """(E,) the fraction of its route a defender reached, the mean over the defenders."""
+        return self.defender_route_fraction.mean(-1)
+
+    @property
     def evasion(self) -> torch.Tensor:
-        """(E,) the fraction of its route each defender flew without being caught: its route
-        fraction, 0 for a captured or crashed episode."""
-        return self.route_fraction.masked_fill(self.captured | self.grounded, 0.0)
+        """(E,) the fraction of its route a defender flew without being caught: its route
+        fraction, 0 if it was caught or the episode crashed; the mean over the defenders."""
+        out = self.defender_caught | self.grounded.unsqueeze(-1)
+        return self.defender_route_fraction.masked_fill(out, 0.0).mean(-1)
 
     @property
     def evasion_score(self) -> float:
@@ -124,6 +132,7 @@ def evaluate(
     visible_steps = torch.zeros(n, device=env.device)
     positions = [td["positions"]] if record else None
     waypoint = td["waypoint"].clone()  # (n, m)
+    caught = td["caught"].clone()
     with set_exploration_type(kind):
         while alive.any():
             td = env.step(policy(td))
@@ -136,6 +145,7 @@ def evaluate(
             d = nxt["distance"].squeeze(-1)
             min_distance = torch.where(alive, min_distance.minimum(d), min_distance)
             waypoint = torch.where(alive.unsqueeze(-1), nxt["waypoint"], waypoint)
+            caught = torch.where(alive.unsqueeze(-1), nxt["caught"], caught)
             visible_steps += nxt["visible"].squeeze(-1) * a
             if positions is not None:
                 keep = alive.view(n, 1, 1)
@@ -157,6 +167,7 @@ def evaluate(
         term_sums={k: v.cpu() for k, v in terms.items()},
         min_distance=min_distance.cpu(),
         visible_fraction=(visible_steps / length.clamp_min(1)).float().cpu(),
-        route_fraction=(waypoint.float() / env.routes.shape[1]).mean(-1).cpu(),
+        defender_route_fraction=(waypoint.float() / env.routes.shape[1]).cpu(),
+        defender_caught=caught.cpu(),
         positions=None if positions is None else torch.stack(positions, 1).cpu(),
     )

@@ -233,8 +233,9 @@ def episode_rows(
     dimension); a set with k > 1 attackers or m > 1 defenders adds ``attacker{i}_start_x/y/z``
     and ``attacker{i}_max_speed`` per extra attacker i, ``defender{j}_route``,
     ``defender{j}_route_direction``, ``defender{j}_strategy``, ``defender{j}_start_x/y/z`` and
-    ``defender{j}_max_speed`` per extra defender j, after ``speed_ratio``. ``attackers``: how
-    many of each scenario's attackers flew (``env.attackers``; None: all).
+    ``defender{j}_max_speed`` per extra defender j and ``defenders_caught``, after
+    ``speed_ratio``. ``attackers``: how many of each scenario's attackers flew
+    (``env.attackers``; None: all).
     """
     sc = {k: v.tolist() for k, v in scenarios.split(split).items()}
     ids = scenarios.ids[split]
@@ -243,6 +244,7 @@ def episode_rows(
     keys += ("min_distance", "visible_fraction", "route_fraction", "evasion", "returns")
     out = {k: getattr(results, k).tolist() for k in keys}
     terms = {k: v.tolist() for k, v in results.term_sums.items()}
+    caught_count = results.defender_caught.sum(-1).tolist()
     rows = []
     for e, i in enumerate(out["scenario_index"]):
         v_a, v_d = sc["attacker_max_speed"][i], sc["defender_max_speed"][i]
@@ -259,6 +261,8 @@ def episode_rows(
             extra[f"defender{d}_strategy"] = STRATEGIES[strategies_d[d]]
             extra.update(_xyz(f"defender{d}_start", starts_d[d]))
             extra[f"defender{d}_max_speed"] = v_d[d]
+        if len(v_d) > 1:
+            extra["defenders_caught"] = caught_count[e]
         route = routes_d[0]
         row = {
             "scenario_id": ids[i],
