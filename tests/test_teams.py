@@ -39,8 +39,9 @@ def test_specs_of_every_team_size(team_sets, k, m):
     td = env.reset()
     assert td["positions"].shape == (3, k + m, 3)
     assert td["caught"].shape == td["waypoint"].shape == (3, m)
-    # Each attacker sees every defender and its team-mates: eq. 1 with a block per other drone.
-    obs_dim = 3 + 6 * (m + k - 1)
+    # Each attacker sees every defender and its team-mates: eq. 1 with a block per other drone,
+    # which says whether that drone is still in play where defenders can be caught one by one.
+    obs_dim = 3 + (6 + (m > 1)) * (m + k - 1)
     if k == 1:
         assert env.group is None and td["observation"].shape == (3, obs_dim)
     else:
@@ -55,7 +56,7 @@ def test_specs_of_every_defender_team(team_sets, k, m):
     check_env_specs(env, seed=0)
     td = env.reset()
     # route_state: own velocity, way to the setpoint, then each attacker's and team-mate's block.
-    obs_dim = 6 + 6 * (k + m - 1)
+    obs_dim = 6 + (6 + (m > 1)) * (k + m - 1)
     if m == 1:
         assert env.group is None and td["observation"].shape == (3, obs_dim)
     else:
@@ -113,6 +114,11 @@ def test_a_caught_defender_leaves_play_and_the_last_capture_ends_the_episode(tea
     grounded = (rollout["next", "positions"][..., 2] <= 0).any(-1)
     assert torch.equal(rollout["next", "terminated"].squeeze(-1), caught.all(-1) | grounded)
     assert (rollout["next", "captured"].squeeze(-1) == caught.all(-1)).all()
+    # Each attacker sees which defender is still in play: the flag closing its block.
+    obs = rollout["next", "attacker", "observation"]  # [v_own, (p, v, in play) per other drone]
+    for j in range(2):
+        flag = obs[..., 3 + 7 * j + 6]
+        assert torch.equal(flag, (~caught[..., j]).float().unsqueeze(-1).expand_as(flag))
     # A caught defender brakes to a hover where it is while the episode goes on.
     first = partly & ~torch.cat([partly[:, :1] & False, partly[:, :-1]], 1)
     checked = 0

@@ -28,6 +28,8 @@ class DroneView:
             one once the route is flown).
         mate_position, mate_velocity: (*B, K, 3) float32, the drone's team-mates in drone
             order; None (or K = 0) for a drone that flies alone.
+        other_in_play, mate_in_play: (*B, M) and (*B, K) bool, which opponents and team-mates
+            are still in play (False: a caught defender); None where no observation reads them.
     """
 
     own_position: Tensor
@@ -37,6 +39,8 @@ class DroneView:
     setpoint: Tensor | None = None
     mate_position: Tensor | None = None
     mate_velocity: Tensor | None = None
+    other_in_play: Tensor | None = None
+    mate_in_play: Tensor | None = None
 
 
 def inside_ellipsoid(rel: Tensor, semi_axes: Tensor) -> Tensor:
@@ -54,8 +58,9 @@ class _Observation:
     """Base of the observations: ``dim`` features, each with a typical magnitude in ``scale``.
 
     An observation is the drone's own features followed by a block per other drone it sees:
-    first each opponent, then each team-mate, in drone order (``other_layout`` per block). With
-    one opponent and no team-mate this is the 1-vs-1 observation.
+    first each opponent, then each team-mate, in drone order (``other_layout`` per block, then,
+    with ``in_play``, 1 if that drone is still in play and 0 if it was caught). With one
+    opponent and no team-mate this is the 1-vs-1 observation.
 
     The env emits raw values (m, m/s); the agent's networks divide by ``scale`` first.
 
@@ -64,6 +69,8 @@ class _Observation:
         velocity_scale: m/s, typical magnitude of a velocity feature.
         opponents: M, opponents the drone sees (set by the env factory from the scenarios).
         mates: K, team-mates the drone sees (set by the env factory from the scenarios).
+        in_play: add each other drone's in-play flag (set by the env factory where defenders
+            can leave play before the episode ends: more than one of them).
     """
 
     own_layout: tuple[str, ...] = ()  # "p" or "v" per 3-vector of the drone's own features
@@ -76,25 +83,33 @@ class _Observation:
         velocity_scale: float = 5.0,
         opponents: int = 1,
         mates: int = 0,
+        in_play: bool = False,
     ) -> None:
         for name, v in (("position_scale", position_scale), ("velocity_scale", velocity_scale)):
             if not v > 0:
                 raise ConfigError(f"observation.{name}: must be > 0, got {v}")
         if opponents < 1 or mates < 0:
             raise ConfigError(f"observation: needs >= 1 opponent, got {opponents} and {mates}")
-        self.opponents, self.mates = int(opponents), int(mates)
-        layout = self.own_layout + self.other_layout * (self.opponents + self.mates)
-        per = {"p": float(position_scale), "v": float(velocity_scale)}
-        self.scale = [per[kind] for kind in layout for _ in range(3)]
+        self.opponents, self.mates, self.in_play = int(opponents), int(mates), bool(in_play)
+        block = self.other_layout + (("f",) if self.in_play else ())
+        layout = self.own_layout + block * (self.opponents + self.mates)
+        per = {"p": [float(position_scale)] * 3, "v": [float(velocity_scale)] * 3, "f": [1.0]}
+        self.scale = [x for kind in layout for x in per[kind]]
         self.dim = len(self.scale)
 
     def __call__(self, view: DroneView) -> Tensor:
         """The observation (*B, dim) float32."""
-        blocks = self._other(view, view.other_position, view.other_velocity)
+        blocks = self._block(view, view.other_position, view.other_velocity, view.other_in_play)
         if self.mates:
-            mates = self._other(view, view.mate_position, view.mate_velocity)
+            mates = self._block(view, view.mate_position, view.mate_velocity, view.mate_in_play)
             blocks = torch.cat([blocks, mates], -2)
         return torch.cat([*self._own(view), blocks.flatten(-2)], -1)  # (*B, dim)
+
+    def _block(self, view: DroneView, position: Tensor, velocity: Tensor, in_play) -> Tensor:
+        block = self._other(view, position, velocity)
+        if not self.in_play:
+            return block
+        return torch.cat([block, in_play.unsqueeze(-1).to(block.dtype)], -1)
 
     def _own(self, view: DroneView) -> list[Tensor]:
         """The drone's own features, each (*B, 3)."""

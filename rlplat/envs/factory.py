@@ -114,8 +114,13 @@ def build_env(
         scenarios=scenarios,
         dynamics=dynamics,
         observation=build_component(
-            OBSERVATIONS, "observation", c["observation"], opponents=opponents, mates=team - 1
-        ),
+            OBSERVATIONS,
+            "observation",
+            c["observation"],
+            opponents=opponents,
+            mates=team - 1,
+            in_play=m > 1,
+        ),  # fmt: skip
         action=build_component(ACTIONS, "action", c["action"]),
         reward=reward,
         split=split,
