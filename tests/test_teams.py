@@ -1,6 +1,7 @@
 """Several drones: k attackers and m defenders in one env, a shared policy per learning role."""
 
 import itertools
+from pathlib import Path
 
 import pytest
 import torch
@@ -251,7 +252,11 @@ def test_env_attackers_flies_the_first_attackers_of_each_scenario(team_sets):
     first, both = one.reset()["positions"], two.reset()["positions"]
     assert one.group is None and first.shape == (4, 2, 3)
     assert torch.equal(first, both[:, [0, 2]])  # the first attacker, the same defender
-    for bad, error in (("3", "the scenarios have 2"), ("0", "a positive integer or null")):
+    for bad, error in (
+        ("3", "the scenarios have 2"),
+        ("0", "a positive integer or null"),
+        ("two", "a positive integer or null, got 'two'"),
+    ):
         with pytest.raises(ConfigError, match=f"env.attackers: .*{error}"):
             make_env(f"env.attackers={bad}", scenarios=team_sets[2, 1])
 
@@ -259,8 +264,10 @@ def test_env_attackers_flies_the_first_attackers_of_each_scenario(team_sets):
 def test_the_gym_adapter_refuses_a_team(team_sets):
     from rlplat import make_gym_env
 
-    with pytest.raises(ConfigError, match=r"gym adapter: flies one learning drone"):
+    with pytest.raises(ConfigError, match=r"gym adapter: flies one learning drone.*env.attackers"):
         make_gym_env(scenarios=team_sets[2, 1])
+    with pytest.raises(ConfigError, match=r"defenders 2 \(scenario.defenders: valid 1\)"):
+        make_gym_env("drone=defender_v1", scenarios=team_sets[1, 2])
 
 
 def test_a_team_run_and_a_lone_run_evaluate_on_the_same_defenders(team_sets, tmp_path):
@@ -278,6 +285,26 @@ def test_a_team_run_and_a_lone_run_evaluate_on_the_same_defenders(team_sets, tmp
     )
     assert (pair["attackers"], alone.summary["attackers"]) == (2, 1)
     assert pair["scenario_digest"] == alone.summary["scenario_digest"]
-    with open(alone.out_dir / "episodes.csv") as f:
-        columns = next(csv.reader(f))
-    assert "attacker_max_speed" in columns and "attacker1_max_speed" not in columns
+
+    def rows(path):
+        with open(path / "episodes.csv") as f:
+            return list(csv.DictReader(f))
+
+    pair_rows, alone_rows = rows(Path(team) / "eval" / "val-best"), rows(alone.out_dir)
+    assert "attacker1_max_speed" in pair_rows[0] and "attacker1_max_speed" not in alone_rows[0]
+    same = ("scenario_id", "route", "defender_strategy", "defender_start_z", "attacker_start_x")
+    assert [[r[c] for c in same] for r in pair_rows] == [[r[c] for c in same] for r in alone_rows]
+    # A checkpoint flies only the team it was trained in.
+    with pytest.raises(ConfigError, match=r"trained with attackers=2, this evaluation flies"):
+        evaluate_run(team, attackers=1, out_dir=tmp_path / "f", **kwargs)
+    with pytest.raises(ConfigError, match=r"trained with attackers=1, this evaluation flies"):
+        evaluate_run(lone, scenarios_dir=team_sets[2, 1].path, out_dir=tmp_path / "g", **kwargs)
+
+
+def test_a_team_trained_defender_network_is_refused_for_scripted_defenders(team_sets, tmp_path):
+    from rlplat.agents.controller import load_controller
+    from tests.test_train import tiny_run
+
+    run = tiny_run(team_sets[1, 2], tmp_path / "run", "drone=defender_v1")["run_dir"]
+    with pytest.raises(ConfigError, match=r"trained with 1 attackers and 2 defenders"):
+        load_controller(f"{run}/checkpoints/best.pt", "defender", "env.defender_network")

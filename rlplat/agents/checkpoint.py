@@ -49,9 +49,15 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     return state
 
 
-def check_compatible(state: dict[str, Any], net: NetSpec, interface: dict[str, str], path) -> None:
+def saved_interface(state: dict[str, Any]) -> dict[str, Any]:
+    """The drone interface a checkpoint was trained with; one written before teams existed
+    flew 1 attacker against 1 defender."""
+    return {"attackers": 1, "defenders": 1, **state.get("interface", {})}
+
+
+def check_compatible(state: dict[str, Any], net: NetSpec, interface: dict[str, Any], path) -> None:
     """Refuse to continue from a checkpoint whose networks or drone interface differ."""
-    saved_net, saved_iface = state["net"], state["interface"]
+    saved_net, saved_iface = state["net"], saved_interface(state)
     for key, value in net.as_dict().items():
         if saved_net[key] != value:
             raise ConfigError(
@@ -65,11 +71,9 @@ def check_compatible(state: dict[str, Any], net: NetSpec, interface: dict[str, s
             )
 
 
-def load_policy(
-    path: str | Path, action_spec, device: torch.device | str = "cpu", group: str | None = None
-):
+def load_policy(path: str | Path, action_spec, device: torch.device | str = "cpu"):
     """The deterministic-capable actor saved in a checkpoint (``best.pt`` or ``last.pt``)."""
-    return actor_from_state(load_checkpoint(path), action_spec, device, group)
+    return actor_from_state(load_checkpoint(path), action_spec, device)
 
 
 def actor_from_state(

@@ -20,7 +20,12 @@ import torch
 from torch import Tensor, nn
 from torchrl.data import Bounded
 
-from rlplat.agents.checkpoint import actor_from_state, load_checkpoint, save_checkpoint
+from rlplat.agents.checkpoint import (
+    actor_from_state,
+    load_checkpoint,
+    save_checkpoint,
+    saved_interface,
+)
 from rlplat.envs.components import OBSERVATIONS, DroneView
 from rlplat.errors import ConfigError
 from rlplat.io import atomic_write_text
@@ -54,9 +59,16 @@ class NetworkController(nn.Module):
 
     def __init__(self, state: dict[str, Any], role: str, where: str) -> None:
         super().__init__()
-        learner = state["interface"].get("drone.learner")
+        interface = saved_interface(state)
+        learner = interface.get("drone.learner")
         if learner != role:
             raise ConfigError(f"{where}: the checkpoint flies the {learner}, not the {role}")
+        team = interface["attackers"], interface["defenders"]
+        if team != (1, 1):
+            raise ConfigError(
+                f"{where}: the network was trained with {team[0]} attackers and {team[1]} "
+                "defenders; a scripted drone flies a 1-vs-1 network (it sees its nearest opponent)"
+            )
         node = dict(state["config"]["observation"])
         name = node.pop("name")
         if name not in OBSERVATIONS:

@@ -94,12 +94,15 @@ def _run_dir(run_dir: str | Path | None) -> Path:
     return Path(HydraConfig.get().runtime.output_dir)
 
 
-def _interface(cfg: DictConfig) -> dict[str, str]:
-    """The drone interface a checkpoint is bound to."""
+def _interface(cfg: DictConfig, env) -> dict[str, Any]:
+    """The drone interface a checkpoint is bound to: the learner, its observation and action,
+    and how many drones of each role flew (what the observation's blocks are)."""
     return {
         "drone.learner": cfg.drone.learner,
         "observation.name": cfg.observation.name,
         "action.name": cfg.action.name,
+        "attackers": env.num_attackers,
+        "defenders": env.num_defenders,
     }
 
 
@@ -167,7 +170,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     )  # fmt: skip
     net = net_spec(env.obs_fn.scale, env.drone_action_spec.shape[-1], algo)
     if resume_state is not None:
-        check_compatible(resume_state, net, _interface(cfg), ckpt_dir / "last.pt")
+        check_compatible(resume_state, net, _interface(cfg, env), ckpt_dir / "last.pt")
 
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
@@ -233,7 +236,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     def payload() -> dict[str, Any]:
         return {
             "net": net.as_dict(),
-            "interface": _interface(cfg),
+            "interface": _interface(cfg, env),
             "actor": agent.actor.state_dict(),
             "agent": agent.state_dict(),
             "counters": dict(counters),
@@ -304,7 +307,8 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
             _store(buffer, batch, algo, keep, env.group)
             values = _episode_metrics(batch, terms)
 
-            if len(buffer) >= max(learning_starts, algo.batch_size):
+            # The buffer holds one transition per learning drone and frame.
+            if len(buffer) >= max(learning_starts * env.team_size, algo.batch_size):
                 update_credit += n * algo.utd_ratio
                 losses = []
                 while update_credit >= 1.0:

@@ -16,7 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from rlplat.envs.components import ACTIONS, OBSERVATIONS, Reward
 from rlplat.envs.dynamics import DYNAMICS
-from rlplat.envs.pursuit import PursuitEnv
+from rlplat.envs.pursuit import PursuitEnv, flown_attackers
 from rlplat.errors import ConfigError
 from rlplat.scenarios import STRATEGIES, ScenarioSet, ScenarioSpec, write_scenario_set
 
@@ -84,7 +84,7 @@ def build_env(
         raise ConfigError(f"num_envs: must be >= 1, got {num_envs}")
     c = OmegaConf.to_container(cfg, resolve=True)
     env_node = {**c["env"], **env_overrides}
-    k, m = env_node.get("attackers") or scenarios.attackers, scenarios.defenders
+    k, m = flown_attackers(env_node.get("attackers"), scenarios), scenarios.defenders
     dynamics = build_component(
         DYNAMICS, "dynamics", c["dynamics"], num_envs=num_envs, num_drones=k + m, device=device
     )

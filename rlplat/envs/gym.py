@@ -37,9 +37,10 @@ class PursuitGymEnv(gym.Env):
         self.scenario_set = resolve_scenarios(cfg, scenarios)
         self.env = build_env(cfg, scenarios=self.scenario_set, split=split, num_envs=1)
         if self.env.group is not None:
+            field = "env.attackers" if self.env.group == "attacker" else "scenario.defenders"
             raise ConfigError(
                 f"gym adapter: flies one learning drone, the scenarios give the "
-                f"{self.env.group} {self.env.team_size} (scenario.attackers: valid 1)"
+                f"{self.env.group}s {self.env.team_size} ({field}: valid 1)"
             )
         self.ids = self.scenario_set.ids[split]
         obs_dim = self.env.observation_spec["observation"].shape[-1]

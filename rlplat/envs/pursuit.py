@@ -167,13 +167,7 @@ class PursuitEnv(EnvBase):
         for name, v in (("control_period", control_period), ("time_limit", time_limit)):
             if not v > 0:
                 raise ConfigError(f"env.{name}: must be > 0, got {v}")
-        k, m = scenarios.attackers, scenarios.defenders
-        if attackers is not None:
-            if isinstance(attackers, bool) or not isinstance(attackers, int) or attackers < 1:
-                raise ConfigError(f"env.attackers: a positive integer or null, got {attackers!r}")
-            if attackers > k:
-                raise ConfigError(f"env.attackers: {attackers}, the scenarios have {k} (at most)")
-            k = attackers
+        k, m = flown_attackers(attackers, scenarios), scenarios.defenders
         if dynamics.position.shape[1] != k + m:
             raise ValueError(
                 f"dynamics: {dynamics.position.shape[1]} drones, the scenarios have {k + m}"
@@ -181,8 +175,10 @@ class PursuitEnv(EnvBase):
         self.scenario_set, self.split_name = scenarios, split
         self.scenarios = scenarios.split(split).to(self.device)
         if k < scenarios.attackers:  # fly the first k attackers of each scenario
-            for key in ("attacker_start", "attacker_max_speed"):
-                self.scenarios = self.scenarios.set(key, self.scenarios[key][:, :k].clone())
+            cut = {
+                key: self.scenarios[key][:, :k] for key in ("attacker_start", "attacker_max_speed")
+            }
+            self.scenarios = self.scenarios.clone(False).update(cut)
         n_nn = int((self.scenarios["defender_strategy"] == NN).any(-1).sum())
         if n_nn and learner == "attacker" and defender_network is None:
             raise ConfigError(
@@ -324,7 +320,9 @@ class PursuitEnv(EnvBase):
             self.dynamics.reset(mask, position, torch.zeros_like(position), self.max_speed.clone())
         sight = self._sight(self._relative(self.dynamics.position))
         flag = torch.zeros(n, 1, dtype=torch.bool, device=self.device)
-        out = self._outputs(sight, flag, done=flag, terminated=flag.clone(), truncated=flag.clone())
+        out = self._outputs(
+            sight, flag, done=flag.clone(), terminated=flag.clone(), truncated=flag.clone()
+        )
         return self._tensordict(out)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -499,9 +497,9 @@ class PursuitEnv(EnvBase):
             "distance": sight.distance.unsqueeze(-1),
             "visible": sight.visible.unsqueeze(-1),
             "captured": captured,
-            "caught": self.caught,
+            "caught": self.caught.clone(),
             "positions": p,
-            "waypoint": self.waypoint,
+            "waypoint": self.waypoint.clone(),
             "scenario_index": self.scenario_index.unsqueeze(-1),
             **extra,
         }
@@ -515,6 +513,20 @@ class PursuitEnv(EnvBase):
                 team["reward"] = team_reward
             out[self.group] = team
         return out
+
+
+def flown_attackers(attackers: int | None, scenarios: ScenarioSet) -> int:
+    """How many attackers an env flies: ``env.attackers`` (the first that many of each
+    scenario), or all of the scenarios' when None; a clear error for anything else."""
+    if attackers is None:
+        return scenarios.attackers
+    if isinstance(attackers, bool) or not isinstance(attackers, int) or attackers < 1:
+        raise ConfigError(f"env.attackers: a positive integer or null, got {attackers!r}")
+    if attackers > scenarios.attackers:
+        raise ConfigError(
+            f"env.attackers: {attackers}, the scenarios have {scenarios.attackers} (at most)"
+        )
+    return attackers
 
 
 def _closest_approach(before: Tensor, after: Tensor) -> Tensor:

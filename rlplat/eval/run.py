@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from rlplat.agents.checkpoint import actor_from_state, load_checkpoint
+from rlplat.agents.checkpoint import actor_from_state, load_checkpoint, saved_interface
 from rlplat.config import checked_threads
 from rlplat.envs.factory import build_env, resolve_scenarios
 from rlplat.envs.pursuit import PursuitEnv
@@ -72,7 +72,16 @@ def checkpoint_path(run_dir: Path, ckpt: str) -> Path:
 
 
 def check_policy_fits(state: dict[str, Any], cfg: DictConfig, env: PursuitEnv, path) -> None:
-    """Refuse a checkpoint whose sizes or drone interface differ from the run's config."""
+    """Refuse a checkpoint whose team sizes, network sizes or drone interface differ from the
+    env it would fly in (the run's config, on the scenarios and attackers asked for)."""
+    interface = saved_interface(state)
+    for key, value in (("attackers", env.num_attackers), ("defenders", env.num_defenders)):
+        saved = interface.pop(key)
+        if saved != value:
+            raise ConfigError(
+                f"ckpt: {path} was trained with {key}={saved}, this evaluation flies "
+                f"{key}={value} (scenarios_dir, attackers)"
+            )
     sizes = {"obs_dim": env.obs_fn.dim, "action_dim": env.action_fn.dim}
     for key, value in sizes.items():
         if state["net"][key] != value:
@@ -81,7 +90,7 @@ def check_policy_fits(state: dict[str, Any], cfg: DictConfig, env: PursuitEnv, p
                 f"(observation={cfg.observation.name}, action={cfg.action.name}) "
                 f"gives {key}={value}"
             )
-    for key, saved in state.get("interface", {}).items():
+    for key, saved in interface.items():
         value = OmegaConf.select(cfg, key)
         if saved != value:
             raise ConfigError(f"ckpt: {path} was trained with {key}={saved}, the run has {value}")
