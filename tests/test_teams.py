@@ -308,3 +308,20 @@ def test_a_team_trained_defender_network_is_refused_for_scripted_defenders(team_
     run = tiny_run(team_sets[1, 2], tmp_path / "run", "drone=defender_v1")["run_dir"]
     with pytest.raises(ConfigError, match=r"trained with 1 attackers and 2 defenders"):
         load_controller(f"{run}/checkpoints/best.pt", "defender", "env.defender_network")
+
+
+def test_a_capture_pays_every_attacker_and_the_root_reward_is_the_team_mean(team_sets):
+    env = make_env(scenarios=team_sets[2, 1], split="val", num_envs=16)
+    env.set_seed(0)
+    rollout = env.rollout(400, make_baseline("pure_pursuit", env), break_when_any_done=False)
+    nxt = rollout["next"]
+    reward = nxt["attacker", "reward"].squeeze(-1)  # (N, T, 2)
+    captured = nxt["captured"].squeeze(-1)
+    assert captured.any()
+    # Eq. 3 on a capture step is +10 for both, whichever attacker came close.
+    assert (reward[captured] == 10.0).all()
+    torch.testing.assert_close(nxt["reward"].squeeze(-1), reward.mean(-1))
+    # Each attacker's distance is its own, to the defender.
+    p = nxt["positions"]
+    own = (p[..., 2:3, :] - p[..., :2, :]).norm(dim=-1)
+    torch.testing.assert_close(nxt["attacker", "distance"].squeeze(-1), own)
