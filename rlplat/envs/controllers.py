@@ -30,14 +30,20 @@ def pure_pursuit(position: Tensor, target: Tensor, max_speed: Tensor, gain: floa
     return _saturate(gain * (target - position), max_speed)
 
 
-def nearest(own: Tensor, others: Tensor, in_play: Tensor | None = None) -> Tensor:
+def targets(caught: Tensor) -> Tensor:
+    """The defenders an attacker may still chase and measure, (N, m) bool: those not caught, or
+    all of them once every one is (the episode ends then)."""
+    return ~caught | caught.all(-1, keepdim=True)
+
+
+def nearest(own: Tensor, others: Tensor, allowed: Tensor | None = None) -> Tensor:
     """Index of the nearest other drone for each own drone.
 
     Args:
         own: (N, K, 3) m, the positions of K drones.
         others: (N, M, 3) m, the positions of M other drones.
-        in_play: (N, M) bool, the other drones that may be picked (None: all); a row with none
-            in play picks among all.
+        allowed: (N, M) bool, the other drones that may be picked (None: all); every row needs
+            one.
 
     Returns:
         (N, K) int64 indices into the M other drones.
@@ -45,9 +51,8 @@ def nearest(own: Tensor, others: Tensor, in_play: Tensor | None = None) -> Tenso
     if others.shape[1] == 1:  # nothing to choose from
         return torch.zeros(own.shape[:2], dtype=torch.int64, device=own.device)
     distance = (others.unsqueeze(1) - own.unsqueeze(2)).norm(dim=-1)  # (N, K, M)
-    if in_play is not None:
-        pool = in_play | ~in_play.any(-1, keepdim=True)
-        distance = distance.masked_fill(~pool.unsqueeze(1), float("inf"))
+    if allowed is not None:
+        distance = distance.masked_fill(~allowed.unsqueeze(1), float("inf"))
     return distance.argmin(-1)
 
 

@@ -14,7 +14,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from rlplat.envs.components import DroneView, Reward, RewardContext, inside_ellipsoid
-from rlplat.envs.controllers import follow_route, gather_drones, nearest, pure_pursuit
+from rlplat.envs.controllers import follow_route, gather_drones, nearest, pure_pursuit, targets
 from rlplat.errors import ConfigError
 from rlplat.scenarios import STRATEGIES, ScenarioSet
 
@@ -436,8 +436,8 @@ class PursuitEnv(EnvBase):
         distance, visible = rel.norm(dim=-1), inside_ellipsoid(rel, self.semi_axes)
         far, seen = distance, visible
         if self.num_defenders > 1:  # a lone defender is in play until the episode ends
-            in_play = (~self.caught | self.caught.all(-1, keepdim=True)).unsqueeze(1)
-            far, seen = far.masked_fill(~in_play, float("inf")), seen & in_play
+            chased = targets(self.caught).unsqueeze(1)
+            far, seen = far.masked_fill(~chased, float("inf")), seen & chased
         overall = far.flatten(1).amin(-1), seen.flatten(1).any(-1)
         if self.learner == ATTACKER:  # each attacker: the nearest defender in play
             return _Sight(far.amin(-1), seen.any(-1), *overall)
@@ -464,7 +464,7 @@ class PursuitEnv(EnvBase):
     def _attacker_command(self, p: Tensor) -> Tensor:
         """Scripted attackers: pure pursuit of the nearest defender in play, (N, k, 3) m/s."""
         own, defenders = p[:, self.attackers], p[:, self.defenders]
-        goal = gather_drones(defenders, nearest(own, defenders, ~self.caught))
+        goal = gather_drones(defenders, nearest(own, defenders, targets(self.caught)))
         return pure_pursuit(own, goal, self.max_speed[:, self.attackers], self.pursuit_gain)
 
     def _outputs(

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDictBase
 
-from rlplat.envs.controllers import follow_route, gather_drones, nearest
+from rlplat.envs.controllers import follow_route, gather_drones, nearest, targets
 from rlplat.envs.pursuit import ATTACKER, DEFENDER, ROLES, PursuitEnv
 from rlplat.errors import ConfigError
 
@@ -24,9 +24,9 @@ def _nearest_opponent(env: PursuitEnv, td: TensorDictBase):
     of each one's nearest opponent in play (a defender not yet caught)."""
     p = td["positions"]
     own, others = p[:, env.team], p[:, env.opponents]
-    in_play = ~td["caught"] if env.learner == ATTACKER else None
+    allowed = targets(td["caught"]) if env.learner == ATTACKER else None
     speed = env.max_speed[:, env.team].unsqueeze(-1)
-    return own, speed, nearest(own, others, in_play)
+    return own, speed, nearest(own, others, allowed)
 
 
 def _act(env: PursuitEnv, td: TensorDictBase, action: torch.Tensor) -> TensorDictBase:
