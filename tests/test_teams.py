@@ -78,6 +78,9 @@ def test_a_caught_learning_defender_stops_and_earns_nothing_more(team_sets):
     assert (nxt["defender", "reward"][out] == 0).all()
     assert (nxt["defender", "reward"][~caught] != 0).any()
     assert torch.equal(nxt["caught"], caught.squeeze(-1))
+    # Each defender sees whether its team-mate is still in play (the flag closing its block).
+    mate_flag = nxt["defender", "observation"][..., 6 + 7 * 2 + 6]  # after 2 attackers' blocks
+    assert torch.equal(mate_flag, (~caught.squeeze(-1)).flip(-1).float())
 
 
 @pytest.mark.parametrize(("k", "m"), TEAMS)

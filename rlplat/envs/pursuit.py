@@ -482,16 +482,12 @@ class PursuitEnv(EnvBase):
         if t > 1:
             view = replace(view, mate_position=own_p[:, self._mate_index],
                            mate_velocity=own_v[:, self._mate_index])  # fmt: skip
-        if self.obs_fn.in_play:  # defenders can leave play: who still is
-            in_play = ~self.caught
-            everyone = torch.ones(n, t, t - 1 if self.learner == ATTACKER else self.num_attackers,
-                                  dtype=torch.bool, device=self.device)  # fmt: skip
-            if self.learner == ATTACKER:
-                view = replace(view, other_in_play=in_play.unsqueeze(1).expand(n, t, -1),
-                               mate_in_play=everyone)  # fmt: skip
-            else:
-                view = replace(view, other_in_play=everyone,
-                               mate_in_play=in_play[:, self._mate_index])  # fmt: skip
+        if self.obs_fn.in_play:  # defenders can leave play: which drones still are
+            attackers = torch.ones_like(self.caught[:, :1]).expand(n, self.num_attackers)
+            playing = torch.cat([attackers, ~self.caught], 1)  # (N, k + m)
+            others = playing[:, self.opponents].unsqueeze(1).expand(n, t, -1)
+            mates = playing[:, self.team][:, self._mate_index]
+            view = replace(view, other_in_play=others, mate_in_play=mates)
         team = {"observation": self.obs_fn(view)}
         out = {
             "distance": sight.distance.unsqueeze(-1),
