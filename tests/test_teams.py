@@ -33,37 +33,27 @@ def team_sets(tmp_path_factory) -> dict[tuple[int, int], ScenarioSet]:
     return sets
 
 
+@pytest.mark.parametrize("drone", ["attacker_v3", "defender_v1"])
 @pytest.mark.parametrize(("k", "m"), TEAMS)
-def test_specs_of_every_team_size(team_sets, k, m):
-    env = make_env(scenarios=team_sets[k, m], num_envs=3)
+def test_specs_of_every_team_size(team_sets, drone, k, m):
+    env = make_env(f"drone={drone}", scenarios=team_sets[k, m], num_envs=3)
     check_env_specs(env, seed=0)
     td = env.reset()
     assert td["positions"].shape == (3, k + m, 3)
     assert td["caught"].shape == td["waypoint"].shape == (3, m)
-    # Each attacker sees every defender and its team-mates: eq. 1 with a block per other drone,
-    # which says whether that drone is still in play where defenders can be caught one by one.
-    obs_dim = 3 + (6 + (m > 1)) * (m + k - 1)
-    if k == 1:
+    # Each drone sees every opponent and its team-mates: a block per other drone, which says
+    # whether that drone is still in play where defenders can be caught one by one.
+    role = drone.split("_")[0]  # attacker_v3 -> attacker
+    team, others, own = (k, m, 3) if role == "attacker" else (m, k, 6)  # eq. 1 / route_state
+    obs_dim = own + (6 + (m > 1)) * (others + team - 1)
+    if team == 1:
         assert env.group is None and td["observation"].shape == (3, obs_dim)
-    else:
-        assert env.group == "attacker" and env.action_key == ("attacker", "action")
-        assert td["attacker", "observation"].shape == (3, k, obs_dim)
-        assert td["attacker", "distance"].shape == (3, k, 1)
-
-
-@pytest.mark.parametrize(("k", "m"), TEAMS)
-def test_specs_of_every_defender_team(team_sets, k, m):
-    env = make_env("drone=defender_v1", scenarios=team_sets[k, m], num_envs=3)
-    check_env_specs(env, seed=0)
-    td = env.reset()
-    # route_state: own velocity, way to the setpoint, then each attacker's and team-mate's block.
-    obs_dim = 6 + (6 + (m > 1)) * (k + m - 1)
-    if m == 1:
-        assert env.group is None and td["observation"].shape == (3, obs_dim)
-    else:
-        assert env.group == "defender" and env.action_key == ("defender", "action")
-        assert td["defender", "observation"].shape == (3, m, obs_dim)
-        assert td["defender", "caught"].shape == (3, m, 1)
+        return
+    assert env.action_key == (role, "action")
+    assert td[role, "observation"].shape == (3, team, obs_dim)
+    assert td[role, "distance"].shape == (3, team, 1)
+    if role == "defender":
+        assert td["defender", "caught"].shape == (3, team, 1)
 
 
 def test_a_caught_learning_defender_stops_and_earns_nothing_more(team_sets):
