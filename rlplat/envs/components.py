@@ -89,7 +89,9 @@ class _Observation:
             if not v > 0:
                 raise ConfigError(f"observation.{name}: must be > 0, got {v}")
         if opponents < 1 or mates < 0:
-            raise ConfigError(f"observation: needs >= 1 opponent, got {opponents} and {mates}")
+            raise ConfigError(
+                f"observation: opponents must be >= 1 and mates >= 0, got {opponents}, {mates}"
+            )
         self.opponents, self.mates, self.in_play = int(opponents), int(mates), bool(in_play)
         block = self.other_layout + (("f",) if self.in_play else ())
         layout = self.own_layout + block * (self.opponents + self.mates)

@@ -258,7 +258,7 @@ class PursuitEnv(EnvBase):
         team_obs = {"observation": real(t, self.obs_fn.dim)}
         if self.group is not None:
             team_obs["distance"] = real(t, 1)
-        if self.group == ROLES[DEFENDER]:
+        if self.group is not None and self.learner == DEFENDER:
             team_obs["caught"] = flag(t, 1)
         self.observation_spec = Composite(
             **team(**team_obs),
