@@ -13,7 +13,7 @@ from rlplat.cli import exit_on_error
 @hydra.main(config_path="conf", config_name="evaluate", version_base="1.3")
 @exit_on_error
 def main(cfg: DictConfig) -> None:
-    from rlplat.eval.run import evaluate_from_config
+    from rlplat.experiment.evaluation import evaluate_from_config
 
     for line in evaluate_from_config(cfg):
         print(line)

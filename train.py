@@ -12,7 +12,7 @@ from rlplat.cli import exit_on_error
 @hydra.main(config_path="conf", config_name="train", version_base="1.3")
 @exit_on_error
 def main(cfg: DictConfig) -> None:
-    from rlplat.agents import train
+    from rlplat.experiment import train
 
     summary = train(cfg)
     score = (

@@ -21,9 +21,8 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
-from rlplat.agents import train
-from rlplat.config import compose_config
-from rlplat.eval import evaluate_run
+from rlplat.experiment import evaluate_run, train
+from rlplat.experiment.config import compose_config
 from rlplat.scenarios import ScenarioSpec, write_scenario_set
 
 SHORT_RUN = (

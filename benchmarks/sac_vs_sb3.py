@@ -31,13 +31,13 @@ import numpy as np
 import torch
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
-from rlplat.agents import train
+from rlplat.agents.policies import make_scripted_policy
 from rlplat.agents.sac import SACAgent, net_spec
-from rlplat.agents.train import TRANSITION_KEYS
-from rlplat.config import compose_config
-from rlplat.envs.factory import build_env, resolve_scenarios
-from rlplat.eval.baselines import PurePursuitPolicy
+from rlplat.agents.transitions import TRANSITION_KEYS
 from rlplat.eval.episodes import evaluate
+from rlplat.experiment import train
+from rlplat.experiment.config import compose_config
+from rlplat.experiment.factory import build_env, resolve_scenarios
 
 PAPER = "algo=sac_paper"
 
@@ -74,10 +74,10 @@ def sb3_model(gym_env, seed: int = 0):
 def part_a(cfg, scenarios, updates: int) -> list[tuple[str, float, str]]:
     from stable_baselines3.common.logger import configure
 
-    from rlplat.envs.gym import PursuitGymEnv
+    from rlplat import make_gym_env
 
     rows = []
-    gym_env = PursuitGymEnv(scenarios, PAPER)
+    gym_env = make_gym_env(PAPER, scenarios=scenarios)
     model = sb3_model(gym_env)
     model.set_logger(configure(None, []))
     obs, _ = gym_env.reset(seed=0)
@@ -124,13 +124,13 @@ def sb3_until(cfg, scenarios, threshold: float, cap_s: float, eval_every: int) -
     """Train SB3 with the paper's settings until the threshold or the cap (training time)."""
     from stable_baselines3.common.callbacks import BaseCallback
 
-    from rlplat.envs.gym import PursuitGymEnv
+    from rlplat import make_gym_env
 
     val_env = build_env(
         cfg, scenarios=scenarios, split="val", num_envs=len(scenarios.split("val")),
         scenario_order="sequential",
     )  # fmt: skip
-    model = sb3_model(PursuitGymEnv(scenarios, PAPER))
+    model = sb3_model(make_gym_env(PAPER, scenarios=scenarios))
 
     def policy(td):
         with torch.no_grad():
@@ -236,7 +236,9 @@ def main() -> None:
                 cfg, scenarios=scenarios, split="val", num_envs=len(scenarios.split("val")),
                 scenario_order="sequential",
             )  # fmt: skip
-            threshold = min(0.9, evaluate(val_env, PurePursuitPolicy(val_env)).capture_rate)
+            threshold = min(
+                0.9, evaluate(val_env, make_scripted_policy("pure_pursuit", val_env)).capture_rate
+            )
         ours = rlplat_until(args.overrides, args.minutes)
         sb3 = sb3_until(cfg, scenarios, threshold, 60 * args.sb3_minutes, args.sb3_eval_every)
 

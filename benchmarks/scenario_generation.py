@@ -11,7 +11,7 @@ import time
 
 from omegaconf import OmegaConf
 
-from rlplat.config import compose_config
+from rlplat.experiment.config import compose_config
 from rlplat.scenarios import ScenarioSet, ScenarioSpec, generate, quality_report, write_scenario_set
 
 

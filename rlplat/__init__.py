@@ -8,7 +8,7 @@ def __getattr__(name: str):
     # The env entry points pull in torchrl; import them on first use only, so that
     # `python -m rlplat.scenarios` stays light.
     if name in __all__:
-        from rlplat import api
+        from rlplat.experiment import api
 
         return getattr(api, name)
     raise AttributeError(f"module 'rlplat' has no attribute {name!r}")

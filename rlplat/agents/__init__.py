@@ -1,5 +1,3 @@
-"""Learning agents: SAC from TorchRL parts and the training run."""
-
-from rlplat.agents.train import train
-
-__all__ = ["train"]
+"""Learning agents and the policies they are measured against: SAC from TorchRL parts
+(:mod:`~rlplat.agents.sac`), replay transitions, checkpoints, scripted and network policies
+(:mod:`~rlplat.agents.policies`)."""

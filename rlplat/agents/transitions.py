@@ -113,3 +113,39 @@ def agent_rows(batch: TensorDictBase, group: str) -> TensorDictBase:
         device=batch.device,
     )
     return rows.permute(0, 2, 1).contiguous().reshape(envs * agents, steps)
+
+
+#: What the replay buffer keeps of each transition.
+TRANSITION_KEYS = (
+    "observation",
+    "action",
+    ("next", "observation"),
+    ("next", "reward"),
+    ("next", "done"),
+    ("next", "terminated"),
+)
+
+
+def replay_rows(
+    batch: TensorDictBase,
+    *,
+    group: str | None,
+    potential_key: str,
+    potential_weight: float,
+    gamma: float,
+    n_steps: int,
+) -> TensorDictBase:
+    """A collected ``(envs, T)`` batch as the flat transitions the learner trains on: a row
+    per drone of a team (:func:`agent_rows`), shaped rewards (:func:`shape_rewards`), n-step
+    targets (:func:`n_step_transitions`), only :data:`TRANSITION_KEYS` (and
+    ``steps_to_next_obs`` for n > 1); a team drone's transitions after it was caught are left
+    out."""
+    keep = (*TRANSITION_KEYS, "steps_to_next_obs") if n_steps > 1 else TRANSITION_KEYS
+    if group is not None:
+        batch = agent_rows(batch, group)
+    transitions = shape_rewards(batch, potential_key, potential_weight, gamma)
+    transitions = n_step_transitions(transitions, n_steps, gamma)
+    if group is None:
+        return transitions.select(*keep).reshape(-1)
+    flat = transitions.select(*keep, "alive").reshape(-1)
+    return flat[flat["alive"].squeeze(-1)].exclude("alive")

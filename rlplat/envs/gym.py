@@ -1,8 +1,7 @@
-"""Gymnasium adapter with the paper API: init(scenarios), reset(), step(action), close()."""
+"""Gymnasium adapter with the paper API: init(env), reset(), step(action), close()."""
 
 from __future__ import annotations
 
-import os
 from typing import Any
 
 import gymnasium as gym
@@ -10,43 +9,40 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
+from rlplat.envs.pursuit import PursuitEnv
 from rlplat.errors import ConfigError
-from rlplat.scenarios import ScenarioSet
 
 
 class PursuitGymEnv(gym.Env):
-    """One pursuit (a batch of one) as a ``gymnasium.Env``, for SB3 and other Gymnasium tools.
+    """One pursuit of a given :class:`PursuitEnv` (a batch of one, one learning drone) as a
+    ``gymnasium.Env``, for SB3 and other Gymnasium tools.
 
-    Observation: ``Box(-inf, inf, (obs_dim,), float32)`` from the configured observation.
+    Observation: ``Box(-inf, inf, (obs_dim,), float32)`` from the env's observation.
     Action: ``Box(-1, 1, (action_dim,), float32)``.
     ``info`` carries ``scenario_id``, ``distance``, ``visible`` and ``captured``.
+    ``step()`` before the first ``reset()`` raises Gymnasium's ``ResetNeeded``.
     """
 
     metadata = {"render_modes": []}
 
-    def __init__(
-        self,
-        scenarios: ScenarioSet | str | os.PathLike | None = None,
-        *overrides: str,
-        split: str = "train",
-    ) -> None:
-        from rlplat.config import compose_config
-        from rlplat.envs.factory import build_env, resolve_scenarios
-
-        cfg = compose_config("train", overrides)
-        self.scenario_set = resolve_scenarios(cfg, scenarios)
-        self.env = build_env(cfg, scenarios=self.scenario_set, split=split, num_envs=1)
-        if self.env.group is not None:
-            field = "env.attackers" if self.env.group == "attacker" else "scenario.defenders"
+    def __init__(self, env: PursuitEnv) -> None:
+        if env.batch_size != torch.Size([1]):
+            raise ConfigError(
+                f"gym adapter: flies a batch of one env, got num_envs={env.batch_size[0]}"
+            )
+        if env.group is not None:
+            field = "env.attackers" if env.group == "attacker" else "scenario.defenders"
             raise ConfigError(
                 f"gym adapter: flies one learning drone, the scenarios give the "
-                f"{self.env.group}s {self.env.team_size} ({field}: valid 1)"
+                f"{env.group}s {env.team_size} ({field}: valid 1)"
             )
-        self.ids = self.scenario_set.ids[split]
-        obs_dim = self.env.observation_spec["observation"].shape[-1]
-        act_dim = self.env.action_spec.shape[-1]
+        self.env = env
+        self.ids = env.scenario_set.ids[env.split_name]
+        obs_dim = env.observation_spec["observation"].shape[-1]
+        act_dim = env.action_spec.shape[-1]
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (act_dim,), np.float32)
+        self._needs_reset = True
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         """Load the next scenario of the split (a seed restarts the walk of the split)."""
@@ -54,9 +50,12 @@ class PursuitGymEnv(gym.Env):
         if seed is not None:
             self.env.set_seed(seed)
         td = self.env.reset()
+        self._needs_reset = False
         return self._obs(td), self._info(td)
 
     def step(self, action):
+        if self._needs_reset:
+            raise gym.error.ResetNeeded("Cannot call env.step() before calling env.reset()")
         action = torch.as_tensor(np.asarray(action, dtype=np.float32)).reshape(1, -1)
         td = self.env.step(TensorDict(action=action, batch_size=[1]))["next"]
         return (

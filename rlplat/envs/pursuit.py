@@ -14,7 +14,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from rlplat.envs.components import DroneView, Reward, RewardContext, inside_ellipsoid
-from rlplat.envs.controllers import follow_route, gather_drones, nearest, pure_pursuit, targets
+from rlplat.envs.kinematics import follow_route, gather_drones, nearest, pure_pursuit, targets
 from rlplat.errors import ConfigError
 from rlplat.scenarios import STRATEGIES, ScenarioSet
 
@@ -99,8 +99,11 @@ class PursuitEnv(EnvBase):
         attacker-defender distance among the defenders in play, ``visible`` (N, 1) bool (a
         defender in play inside some attacker's vision ellipsoid), ``captured`` (N, 1) bool
         (every defender caught), ``caught`` (N, m) bool per defender, ``positions``
-        (N, k + m, 3) m, ``waypoint`` (N, m) each defender's next setpoint, ``scenario_index``
-        (N, 1) row of the split.
+        and ``velocities`` (N, k + m, 3) m and m/s, ``max_speed`` (N, k + m) m/s per axis,
+        ``waypoint`` (N, m) the index of each defender's next setpoint, ``setpoints`` (N, m, 3)
+        m its position (the last one once the route is flown), ``route_done`` (N, m) bool the
+        whole route flown, ``scenario_index`` (N, 1) row of the split. The drone-indexed
+        entries are all the scripted policies read (:mod:`rlplat.agents.policies`).
     Action:
         ``action`` (N, action.dim), or ``(group, "action")`` (N, K, action.dim), in [-1, 1],
         mapped by the action component.
@@ -185,8 +188,8 @@ class PursuitEnv(EnvBase):
                 f"scenario split '{split}': {n_nn} scenarios ask for defender_strategy 'nn' but "
                 "no defender network is given (env.defender_network)"
             )
-        # Maps a defender's view to its action in [-1, 1] (see rlplat.agents.controller);
-        # only a scripted defender of an `nn` scenario flies it.
+        # Maps a defender's view to its action in [-1, 1] (an injected callable, e.g.
+        # rlplat.agents.policies.NetworkController); only a scripted `nn` defender flies it.
         self.defender_network = defender_network if n_nn and learner == "attacker" else None
         self.routes = scenarios.routes.to(self.device)
         self.dynamics = dynamics
@@ -267,7 +270,11 @@ class PursuitEnv(EnvBase):
             captured=flag(1),
             caught=flag(m),
             positions=real(self.num_attackers + m, 3),
+            velocities=real(self.num_attackers + m, 3),
+            max_speed=real(self.num_attackers + m),
             waypoint=index(m),
+            setpoints=real(m, 3),
+            route_done=flag(m),
             scenario_index=index(1),
             shape=(n,),
             device=self.device,
@@ -476,7 +483,7 @@ class PursuitEnv(EnvBase):
         own_p, own_v = p[:, self.team], v[:, self.team]
         other_p = p[:, self.opponents].unsqueeze(1).expand(n, t, -1, 3)
         other_v = v[:, self.opponents].unsqueeze(1).expand(n, t, -1, 3)
-        target = self._target()[0]
+        target, route_done = self._target()
         setpoint = target if self.learner != ATTACKER else target[:, :1].expand(n, t, 3)
         view = DroneView(own_p, own_v, other_p, other_v, setpoint)
         if t > 1:
@@ -495,7 +502,11 @@ class PursuitEnv(EnvBase):
             "captured": captured,
             "caught": self.caught.clone(),
             "positions": p,
+            "velocities": v,
+            "max_speed": self.max_speed.clone(),
             "waypoint": self.waypoint.clone(),
+            "setpoints": target,
+            "route_done": route_done,
             "scenario_index": self.scenario_index.unsqueeze(-1),
             **extra,
         }

@@ -20,10 +20,10 @@ from typing import Any
 import numpy as np
 from omegaconf import OmegaConf
 
-from rlplat.agents.metrics import pyplot, save_figure
 from rlplat.cli import exit_on_error
 from rlplat.errors import ConfigError
 from rlplat.eval.metrics import iqm, stratified_bootstrap_ci
+from rlplat.eval.plots import plot_seeds
 from rlplat.io import atomic_write_text
 
 log = logging.getLogger(__name__)
@@ -126,29 +126,6 @@ def _with_ci(value: float, ci: list[float], digits: int) -> str:
     return f"{value:.{digits}f} [{ci[0]:.{digits}f}, {ci[1]:.{digits}f}]"
 
 
-def plot(groups: dict[str, list[dict]], stats: dict[str, dict], path: Path) -> None:
-    """Per metric, per variant: every seed's score, and the IQM with its 95 % CI."""
-    plt = pyplot()
-    names = list(groups)
-    fig, axes = plt.subplots(1, len(METRICS), figsize=(11, 1.2 + 0.7 * len(names)), squeeze=False)
-    for ax, (key, label) in zip(axes[0], METRICS.items(), strict=True):
-        for y, name in enumerate(names):
-            xs = [r[key] for r in groups[name]]
-            ax.scatter(xs, [y] * len(xs), color="grey", alpha=0.7, s=18, zorder=2,
-                       label="seed" if y == 0 else None)  # fmt: skip
-            s = stats[name][key]
-            err = [[max(0.0, s["iqm"] - s["iqm_ci95"][0])], [max(0.0, s["iqm_ci95"][1] - s["iqm"])]]
-            ax.errorbar([s["iqm"]], [y], xerr=err, fmt="D", color="tab:blue", capsize=4,
-                        zorder=3, label="IQM, 95 % CI" if y == 0 else None)  # fmt: skip
-        ax.set_yticks(range(len(names)), names)
-        ax.set_xlabel(label)
-        ax.set_ylim(-0.7, len(names) - 0.3)
-        ax.grid(axis="x", alpha=0.3)
-    axes[0][0].legend(fontsize=8, loc="best")
-    fig.tight_layout()
-    save_figure(fig, path)
-
-
 def aggregate(sweep_dir: str | Path, reps: int = 2000, seed: int = 0) -> str:
     """Aggregate the seeds of a sweep into ``<sweep_dir>/aggregate/``; returns the Markdown."""
     if not isinstance(reps, int) or reps < 1:
@@ -178,7 +155,7 @@ def aggregate(sweep_dir: str | Path, reps: int = 2000, seed: int = 0) -> str:
         "runs": groups,
     }
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
-    plot(groups, stats, out / "seeds.png")
+    plot_seeds(groups, stats, METRICS, out / "seeds.png")
     log.info("aggregated %d runs in %s", sum(map(len, groups.values())), out)
     return table
 

@@ -15,10 +15,10 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from rlplat.agents.metrics import pyplot, save_figure
+from rlplat.agents.policies import POLICIES
 from rlplat.cli import exit_on_error
 from rlplat.errors import ConfigError
-from rlplat.eval.baselines import BASELINES
+from rlplat.eval.plots import plot_comparison
 from rlplat.io import atomic_write_text
 from rlplat.scenarios import SPLITS
 
@@ -45,7 +45,7 @@ COLUMNS = (
 def _order(summary: dict[str, Any]) -> tuple[int, int, str]:
     if summary["policy"] == "checkpoint":
         return (0, 0 if summary["name"] == "best" else 1, summary["name"])
-    return (1, list(BASELINES).index(summary["policy"]), summary["name"])
+    return (1, list(POLICIES).index(summary["policy"]), summary["name"])
 
 
 def load_summaries(run_dir: str | Path, split: str = "test") -> list[dict[str, Any]]:
@@ -114,33 +114,6 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
             f"| {num(r['evasion_score'])} |"
         )
     return "\n".join(lines)
-
-
-def plot_comparison(summaries: list[dict[str, Any]], path: Path) -> None:
-    """Capture rate against speed-ratio bin, one line per policy (95 % Wilson intervals)."""
-    plt = pyplot()
-    fig, ax = plt.subplots(figsize=(7, 4))
-    labels = list(summaries[0]["by_speed_ratio"])
-    for j, s in enumerate(summaries):
-        groups = s["by_speed_ratio"]
-        present = [g for g in labels if g in groups]
-        xs = [labels.index(g) + 0.06 * (j - (len(summaries) - 1) / 2) for g in present]
-        rate = [groups[g]["capture_rate"] for g in present]
-        ci = [groups[g]["capture_rate_ci95"] for g in present]
-        err = [[max(0.0, r - c[0]) for r, c in zip(rate, ci, strict=True)],
-               [max(0.0, c[1] - r) for r, c in zip(rate, ci, strict=True)]]  # fmt: skip
-        name = s["name"] if s["policy"] == "checkpoint" else s["policy"]
-        ax.errorbar(xs, rate, yerr=err, marker="o", capsize=3,
-                    label=f"{name} ({s['capture_rate']:.3f} overall)")  # fmt: skip
-    ax.set_xticks(range(len(labels)), labels)
-    ax.set_xlabel("speed ratio (attacker / defender maximum speed)")
-    ax.set_ylabel("capture rate")
-    ax.set_ylim(-0.02, 1.05)
-    ax.set_title(f"{summaries[0]['split']} split, {summaries[0]['scenarios']} scenarios")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="lower right")
-    fig.tight_layout()
-    save_figure(fig, path)
 
 
 def compare(run_dir: str | Path, split: str = "test") -> str:

@@ -10,8 +10,8 @@ from typing import Any
 
 import torch
 
-from rlplat.agents.metrics import plot_learning_curve, pyplot, save_figure
 from rlplat.eval.episodes import EpisodeResults
+from rlplat.eval.plots import plot_groups, plot_learning_curve, plot_trajectories
 from rlplat.io import atomic_write_text
 
 log = logging.getLogger(__name__)
@@ -38,71 +38,6 @@ def pick_episodes(rows: Sequence[Mapping[str, Any]], k: int) -> list[tuple[int, 
     worst = [i for i in worst if i not in best][: k - len(best)]
     picked = [(i, "best") for i in best] + [(i, "worst") for i in worst]
     return picked
-
-
-def plot_trajectories(
-    rows: Sequence[Mapping[str, Any]],
-    positions: torch.Tensor,
-    routes: torch.Tensor,
-    picked: list[tuple[int, str]],
-    path: Path,
-    attackers: int = 1,
-) -> None:
-    """3D paths of the picked episodes: attackers (the first ``attackers`` drones of
-    ``positions``), defenders, nearby route setpoints, capture."""
-    plt = pyplot()
-    cols = min(3, len(picked))
-    nrows = math.ceil(len(picked) / cols)
-    fig = plt.figure(figsize=(5.2 * cols, 4.6 * nrows))
-    for j, (e, label) in enumerate(picked):
-        r = rows[e]
-        p = positions[e, : r["steps"] + 1].numpy()
-        ax = fig.add_subplot(nrows, cols, j + 1, projection="3d")
-        for i in range(p.shape[1]):
-            role, color = ("attacker", "tab:blue") if i < attackers else ("defender", "tab:red")
-            ax.plot(*p[:, i].T, color=color, label=role if i in (0, attackers) else None)
-            ax.scatter(*p[0, i], color=color, marker="o", s=20)
-        lo, hi = p.reshape(-1, 3).min(0) - 10, p.reshape(-1, 3).max(0) + 10
-        sp = routes[r["route"]].numpy()
-        near = sp[((sp >= lo) & (sp <= hi)).all(1)]
-        if len(near):
-            ax.scatter(*near.T, color="grey", marker="x", s=18, label="route setpoints")
-        if r["captured"]:
-            star = p[-1, attackers]  # the (first) defender where it was caught
-            ax.scatter(*star, color="gold", edgecolor="k", marker="*", s=160, label="capture")
-            outcome = f"captured at {r['time_to_capture_s']:.1f} s"
-        else:
-            outcome = f"missed, closest {r['min_distance_m']:.1f} m"
-        ax.set_title(
-            f"{label}: {r['scenario_id']}\n{outcome}, speed ratio {r['speed_ratio']:.2f}",
-            fontsize=9,
-        )
-        ax.set_xlabel("x [m]")
-        ax.set_ylabel("y [m]")
-        ax.set_zlabel("z [m]")
-        if j == 0:
-            ax.legend(fontsize=7, loc="upper left")
-    fig.tight_layout()
-    save_figure(fig, path)
-
-
-def plot_groups(groups: Mapping[str, Mapping[str, Any]], xlabel: str, title: str, path: Path):
-    """Capture rate per group with its 95 % Wilson interval, and the group sizes."""
-    plt = pyplot()
-    names = list(groups)
-    rate = [groups[g]["capture_rate"] for g in names]
-    low = [max(0.0, rate[i] - groups[g]["capture_rate_ci95"][0]) for i, g in enumerate(names)]
-    high = [max(0.0, groups[g]["capture_rate_ci95"][1] - rate[i]) for i, g in enumerate(names)]
-    fig, ax = plt.subplots(figsize=(max(4.5, 1.1 * len(names) + 2), 3.6))
-    ax.bar(range(len(names)), rate, yerr=[low, high], capsize=4, color="tab:blue", alpha=0.8)
-    ax.set_xticks(range(len(names)), [f"{g}\nn={groups[g]['n']}" for g in names])
-    ax.set_ylim(0, 1.05)
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel("capture rate (95 % Wilson CI)")
-    ax.set_title(title, fontsize=10)
-    ax.grid(axis="y", alpha=0.3)
-    fig.tight_layout()
-    save_figure(fig, path)
 
 
 def _fmt(value: Any, digits: int = 3) -> str:

@@ -6,7 +6,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from rlplat.cli import exit_on_error
-from rlplat.config import CONF_DIR
+from rlplat.experiment.config import CONF_DIR
 from rlplat.scenarios import ScenarioSpec, format_quality, write_scenario_set
 
 

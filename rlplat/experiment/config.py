@@ -10,7 +10,7 @@ from omegaconf import DictConfig
 
 from rlplat.errors import ConfigError
 
-CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
 
 def compose_config(config_name: str, overrides: Sequence[str] = ()) -> DictConfig:

@@ -1,8 +1,7 @@
-"""Metrics of a run: TorchRL loggers (CSV always, plus the configured one), learning curve."""
+"""Metrics of a run: TorchRL loggers (CSV always, plus the configured one)."""
 
 from __future__ import annotations
 
-import io
 import logging
 import os
 from collections import defaultdict
@@ -13,7 +12,6 @@ from typing import Any
 from torchrl.record.loggers import CSVLogger, Logger, TensorboardLogger, WandbLogger
 
 from rlplat.errors import ConfigError
-from rlplat.io import atomic_write_bytes
 
 log = logging.getLogger(__name__)
 
@@ -69,47 +67,3 @@ class Metrics:
             finish = getattr(experiment, "finish", None) or getattr(experiment, "close", None)
             if callable(finish):
                 finish()
-
-
-def pyplot():
-    """matplotlib's pyplot on the non-interactive Agg backend."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def save_figure(fig, path: Path) -> None:
-    """Write ``fig`` as a PNG atomically and close it."""
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=100)
-    pyplot().close(fig)
-    atomic_write_bytes(path, buffer.getvalue())
-
-
-def plot_learning_curve(history: Mapping[str, list[tuple[int, float]]], path: Path) -> None:
-    """Validation capture rate (with the pure-pursuit reference) and mean return, and training
-    return, against frames (PNG)."""
-    plt = pyplot()
-    fig, (top, bottom) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
-    for name, axis in (("eval/capture_rate", top), ("eval/mean_return", bottom)):
-        if history.get(name):
-            x, y = zip(*history[name], strict=True)
-            axis.plot(x, y, marker="o", label=f"validation {name.split('/')[1]}")
-    if history.get("reference/capture_rate"):
-        rate = history["reference/capture_rate"][-1][1]
-        top.axhline(rate, color="grey", linestyle="--", label="pure pursuit (validation)")
-    if history.get("train/episode_return"):
-        x, y = zip(*history["train/episode_return"], strict=True)
-        bottom.plot(x, y, alpha=0.4, label="training episode return")
-    top.set_ylabel("capture rate")
-    top.set_ylim(-0.02, 1.02)
-    bottom.set_ylabel("return")
-    bottom.set_xlabel("frames")
-    for axis in (top, bottom):
-        axis.grid(alpha=0.3)
-        axis.legend(loc="lower right")
-    fig.tight_layout()
-    save_figure(fig, path)

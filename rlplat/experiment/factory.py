@@ -1,4 +1,6 @@
-"""Build a PursuitEnv from the composed Hydra config: the one place where ``cfg`` is read."""
+"""Build envs from the composed Hydra config: scenario sets, components, the defender network.
+
+The env knows no learner: the network its ``nn`` defenders fly is loaded here and injected."""
 
 from __future__ import annotations
 
@@ -14,6 +16,7 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from rlplat.agents.policies import load_controller
 from rlplat.envs.components import ACTIONS, OBSERVATIONS, Reward
 from rlplat.envs.dynamics import DYNAMICS
 from rlplat.envs.pursuit import PursuitEnv, flown_attackers
@@ -136,6 +139,4 @@ def _defender_network(path: str | None, scenarios: ScenarioSet, split: str, lear
     nn_rows = scenarios.split(split)["defender_strategy"] == STRATEGIES.index("nn")  # (n, m)
     if learner != "attacker" or not bool(nn_rows.any()):
         return None
-    from rlplat.agents.controller import load_controller  # the agents import this module
-
     return load_controller(path, "defender", "env.defender_network")

@@ -6,10 +6,10 @@ import os
 
 import torch
 
-from rlplat.config import compose_config
-from rlplat.envs.factory import build_env, resolve_scenarios
 from rlplat.envs.gym import PursuitGymEnv
 from rlplat.envs.pursuit import PursuitEnv
+from rlplat.experiment.config import compose_config
+from rlplat.experiment.factory import build_env, resolve_scenarios
 from rlplat.scenarios import ScenarioSet
 
 
@@ -45,5 +45,8 @@ def make_gym_env(
     scenarios: ScenarioSet | str | os.PathLike | None = None,
     split: str = "train",
 ) -> PursuitGymEnv:
-    """A ``gymnasium.Env`` of one pursuit, for Gymnasium tools such as Stable-Baselines3."""
-    return PursuitGymEnv(scenarios, *overrides, split=split)
+    """A ``gymnasium.Env`` of one pursuit, for Gymnasium tools such as Stable-Baselines3.
+
+    Takes the same arguments as :func:`make_env` (one env); the adapter wraps that env.
+    """
+    return PursuitGymEnv(make_env(*overrides, num_envs=1, scenarios=scenarios, split=split))

@@ -1,0 +1,310 @@
+"""Every policy that is not being trained, in one place.
+
+- The scripted references a learned controller must beat: pure pursuit, proportional
+  navigation and the setpoint follower. Each is a ``TensorDictModule`` that reads only entries
+  of the env's output (``positions``, ``velocities``, ``max_speed``, ``caught``, ``setpoints``,
+  ``route_done``) and writes the env's action key (``action``, or a team's
+  ``("attacker", "action")``) in the action's [-1, 1] units: the command divided by the drone's
+  maximum speed per axis. :data:`POLICIES` names them (``evaluate.py policy=<name>``).
+- :class:`NetworkController`: a trained actor's deterministic action as a plain torch module of
+  a :class:`~rlplat.envs.components.DroneView`, what the env flies for a scripted drone (the
+  defender's ``nn`` strategy); :func:`load_controller` reads one from a checkpoint or the
+  shipped weights.
+- :class:`NoisyPolicy`: a scripted policy with Gaussian exploration, for the scripted start.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any, Literal
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule
+from torch import Tensor, nn
+from torchrl.data import Bounded
+
+from rlplat.agents.checkpoint import actor_from_state, load_checkpoint, saved_interface
+from rlplat.envs.components import OBSERVATIONS, DroneView
+from rlplat.envs.kinematics import follow_route, gather_drones, nearest, targets
+from rlplat.envs.pursuit import ROLES, PursuitEnv
+from rlplat.errors import ConfigError
+
+# Scripted policies -----------------------------------------------------------------------
+
+
+class _Scripted(nn.Module):
+    """What every scripted policy knows of its env: which drones it flies, which it faces.
+
+    Drones are the env's k attackers, then its m defenders (the order of ``positions``). The
+    output is (N, K, 3) for a team (``team=True``: the group layout) and (N, 3) for a lone
+    drone.
+    """
+
+    def __init__(
+        self,
+        *,
+        learner: Literal["attacker", "defender"],
+        attackers: int,
+        defenders: int,
+        team: bool,
+    ) -> None:
+        super().__init__()
+        k, m = attackers, defenders
+        self.learner, self.team = learner, team
+        self.own, self.others = (
+            (slice(0, k), slice(k, k + m))
+            if learner == "attacker"
+            else (slice(k, k + m), slice(0, k))
+        )
+
+    def _nearest(self, positions: Tensor, max_speed: Tensor, caught: Tensor):
+        """The flown drones' positions (N, K, 3), their maximum speeds (N, K, 1) and the index
+        (N, K) of each one's nearest opponent in play (an attacker chases no caught defender)."""
+        own, others = positions[:, self.own], positions[:, self.others]
+        allowed = targets(caught) if self.learner == "attacker" else None
+        return own, max_speed[:, self.own].unsqueeze(-1), nearest(own, others, allowed)
+
+    def _action(self, action: Tensor) -> Tensor:
+        return action if self.team else action[:, 0]
+
+
+class PurePursuit(_Scripted):
+    """Fly each attacker straight at its nearest defender in play (pure pursuit).
+
+    The command ``gain * (p_other - p_own)`` saturated at the drone's maximum speed per axis.
+
+    Args:
+        gain: 1/s, command per metre of separation (``env.pursuit_gain``).
+    """
+
+    in_keys = ("positions", "max_speed", "caught")
+
+    def __init__(self, *, gain: float, **drones: Any) -> None:
+        super().__init__(**drones)
+        self.gain = float(gain)
+
+    def forward(self, positions: Tensor, max_speed: Tensor, caught: Tensor) -> Tensor:
+        own, speed, near = self._nearest(positions, max_speed, caught)
+        rel = gather_drones(positions[:, self.others], near) - own
+        return self._action((self.gain * rel / speed).clamp(-1.0, 1.0))
+
+
+class ProportionalNavigation(_Scripted):
+    """Proportional navigation with lead, in the velocity-command form a multirotor flies.
+
+    PN turns the pursuer until the line of sight to the target stops rotating: a collision
+    course, on which the pursuer flies at the point where the target will be. A drone that is
+    commanded in velocity can fly that course directly: aim at the predicted intercept point
+    ``p_other + lead * v_other * t_go`` and command ``gain * (aim - p_own)`` saturated at the
+    maximum speed per axis, as pure pursuit does with the current position. ``t_go`` is the
+    time the attacker needs to close the largest per-axis gap at full speed while the target
+    keeps its velocity (speed limits are per axis, so each axis closes on its own), capped at
+    ``max_lead_time``; on an axis where the target is as fast as the attacker the cap applies.
+    The target is each attacker's nearest defender in play; with ``lead = 0`` this is pure
+    pursuit.
+
+    Args:
+        gain: 1/s, command per metre to the aim point (``env.pursuit_gain``).
+        lead: fraction of the predicted target motion to lead by (0 = pure pursuit).
+        max_lead_time: s, longest prediction.
+    """
+
+    in_keys = ("positions", "velocities", "max_speed", "caught")
+
+    def __init__(
+        self, *, gain: float, lead: float = 0.5, max_lead_time: float = 4.0, **drones: Any
+    ) -> None:
+        super().__init__(**drones)
+        if not max_lead_time >= 0:
+            raise ConfigError(f"max_lead_time: must be >= 0, got {max_lead_time}")
+        self.gain, self.lead, self.max_lead_time = float(gain), float(lead), float(max_lead_time)
+
+    def forward(
+        self, positions: Tensor, velocities: Tensor, max_speed: Tensor, caught: Tensor
+    ) -> Tensor:
+        own, speed, near = self._nearest(positions, max_speed, caught)
+        rel = gather_drones(positions[:, self.others], near) - own
+        v_other = gather_drones(velocities[:, self.others], near)
+        closing = speed - torch.sign(rel) * v_other  # per-axis closing speed at full throttle
+        t_axis = torch.where(
+            closing > 1e-6, rel.abs() / closing.clamp_min(1e-6), self.max_lead_time
+        )
+        t_go = t_axis.amax(-1, keepdim=True).clamp(max=self.max_lead_time)
+        aim = rel + self.lead * v_other * t_go
+        return self._action((self.gain * aim / speed).clamp(-1.0, 1.0))
+
+
+class SetpointFollower(_Scripted):
+    """The defender's ``setpoints`` strategy as a policy: fly to the route's next setpoint.
+
+    The command is the env's own route follower (``gain`` per metre, saturated at the
+    defender's maximum speed, hold once the route is flown), so this policy is exactly what a
+    scripted defender does.
+
+    Args:
+        gain: 1/s, command per metre to the setpoint (``env.setpoint_gain``).
+    """
+
+    in_keys = ("positions", "max_speed", "setpoints", "route_done")
+
+    def __init__(self, *, gain: float, **drones: Any) -> None:
+        super().__init__(**drones)
+        self.gain = float(gain)
+
+    def forward(
+        self, positions: Tensor, max_speed: Tensor, setpoints: Tensor, route_done: Tensor
+    ) -> Tensor:
+        speed = max_speed[:, self.own]
+        cmd = follow_route(positions[:, self.own], setpoints, route_done, speed, self.gain)
+        return self._action((cmd / speed.unsqueeze(-1)).clamp(-1.0, 1.0))
+
+
+@dataclass(frozen=True)
+class Scripted:
+    """A scripted policy the evaluator can fly: its module, the drone it flies, and which env
+    gain it takes."""
+
+    module: Callable[..., _Scripted]
+    role: Literal["attacker", "defender"]
+    gain: Literal["pursuit_gain", "setpoint_gain"]
+
+
+#: Scripted policies by name (``evaluate.py policy=<name>``, ``algo.init_policy``).
+POLICIES: dict[str, Scripted] = {
+    "pure_pursuit": Scripted(PurePursuit, "attacker", "pursuit_gain"),
+    "proportional_navigation": Scripted(ProportionalNavigation, "attacker", "pursuit_gain"),
+    "setpoint_follower": Scripted(SetpointFollower, "defender", "setpoint_gain"),
+}
+
+
+#: The scripted policy each learner is measured against on the validation split.
+REFERENCE = {"attacker": "pure_pursuit", "defender": "setpoint_follower"}
+
+
+def policies_for(role: str) -> list[str]:
+    """The scripted policies that fly a drone of ``role``."""
+    return [name for name, p in POLICIES.items() if p.role == role]
+
+
+def make_scripted_policy(name: str, env: PursuitEnv, **kwargs: Any) -> TensorDictModule:
+    """The scripted policy ``name`` flying ``env``'s learners, as a ``TensorDictModule``.
+
+    The env gives the drone counts, the action key and the gain (``kwargs`` may override the
+    module's other arguments); the module reads only the env's output. A clear error for an
+    unknown name or a policy made for the other drone.
+    """
+    if name not in POLICIES:
+        raise ConfigError(f"policy: unknown baseline '{name}'; valid: {', '.join(POLICIES)}")
+    scripted, learner = POLICIES[name], ROLES[env.learner]
+    if scripted.role != learner:
+        raise ConfigError(
+            f"policy: {name} flies the {scripted.role}, this run's learner is the {learner}; "
+            f"valid: {', '.join(policies_for(learner))}"
+        )
+    module = scripted.module(
+        learner=learner,
+        attackers=env.num_attackers,
+        defenders=env.num_defenders,
+        team=env.group is not None,
+        **{"gain": getattr(env, scripted.gain), **kwargs},
+    )
+    return TensorDictModule(module, in_keys=list(module.in_keys), out_keys=[env.action_key])
+
+
+class NoisyPolicy:
+    """A policy with Gaussian exploration: ``clamp(action + noise_std * N(0, 1))``.
+
+    Fills a replay buffer with a classical controller's experience, widened by noise so that
+    the critic sees actions around the controller's too. Draws from torch's global generator
+    (seeded by the run).
+    """
+
+    def __init__(self, policy, noise_std: float, key: str | tuple[str, ...] = "action") -> None:
+        self.policy = policy
+        self.noise_std = float(noise_std)
+        self.key = key  # the env's action key
+
+    def __call__(self, td: TensorDictBase) -> TensorDictBase:
+        td = self.policy(td)
+        action = td[self.key]
+        noise = torch.randn(action.shape, device=action.device, dtype=action.dtype)
+        return td.set(self.key, (action + self.noise_std * noise).clamp(-1.0, 1.0))
+
+
+# Trained networks flown as controllers ----------------------------------------------------
+
+#: The defender network the package ships: ``nn`` defenders fly it unless the config names
+#: another checkpoint (``env.defender_network``). Its evaluation is in ``defender_v1.json``.
+SHIPPED_DEFENDER = "defender_v1.pt"
+
+
+def shipped_path(name: str) -> Path:
+    """Path of a controller file shipped in ``rlplat/agents/weights/``."""
+    return Path(str(resources.files("rlplat.agents") / "weights" / name))
+
+
+class NetworkController(nn.Module):
+    """A trained actor's deterministic action as a function of what its drone sees.
+
+    ``forward(view)`` builds the observation the network was trained on (the checkpoint's
+    ``observation`` config) from a :class:`DroneView` and returns the action (N, action_dim) in
+    [-1, 1]: the squashed mean of the actor's ``TanhNormal``, as ``ExplorationType.DETERMINISTIC``
+    gives it, without tensordicts, so that it runs inside a compiled env step.
+
+    Args:
+        state: a loaded checkpoint (:func:`rlplat.agents.checkpoint.load_checkpoint`) of a run
+            or an exported controller.
+        role: the drone it must have been trained to fly.
+        where: the config field named in errors.
+    """
+
+    def __init__(self, state: dict[str, Any], role: str, where: str) -> None:
+        super().__init__()
+        interface = saved_interface(state)
+        learner = interface.get("drone.learner")
+        if learner != role:
+            raise ConfigError(f"{where}: the checkpoint flies the {learner}, not the {role}")
+        team = interface["attackers"], interface["defenders"]
+        if team != (1, 1):
+            raise ConfigError(
+                f"{where}: the network was trained with {team[0]} attackers and {team[1]} "
+                "defenders; a scripted drone flies a 1-vs-1 network (it sees its nearest opponent)"
+            )
+        node = dict(state["config"]["observation"])
+        name = node.pop("name")
+        if name not in OBSERVATIONS:
+            raise ConfigError(f"{where}: unknown observation '{name}' in the checkpoint")
+        self.observation = OBSERVATIONS[name](**node)
+        if self.observation.dim != state["net"]["obs_dim"]:
+            raise ConfigError(
+                f"{where}: observation '{name}' has {self.observation.dim} features, the "
+                f"network takes {state['net']['obs_dim']}"
+            )
+        dim = state["net"]["action_dim"]
+        actor = actor_from_state(state, Bounded(-1.0, 1.0, shape=(dim,)))
+        self.body = actor.module[0].module[0]  # Scaled(MLP): observation -> (loc, raw scale)
+        self.dim, self.margin = dim, float(state["net"].get("action_margin", 0.0))
+        self.requires_grad_(False)
+
+    def forward(self, view: DroneView) -> Tensor:
+        loc = self.body(self.observation(view))[..., : self.dim]
+        return ((1.0 + self.margin) * torch.tanh(loc)).clamp(-1.0, 1.0)
+
+
+def load_controller(path: str | Path | None, role: str, where: str) -> NetworkController:
+    """The controller in checkpoint ``path`` (None = the shipped one of ``role``)."""
+    if path is None:
+        if role != "defender":
+            raise ConfigError(f"{where}: no controller is shipped for the {role}")
+        path = shipped_path(SHIPPED_DEFENDER)
+        if not path.is_file():
+            raise ConfigError(f"{where}: the shipped defender network {path} is missing")
+    try:
+        state = load_checkpoint(path)
+    except ConfigError as e:
+        raise ConfigError(f"{where}: {e}") from None
+    return NetworkController(state, role, where)

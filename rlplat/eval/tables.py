@@ -1,0 +1,159 @@
+"""An evaluation as a table: one row per scenario (its parameters, then its outcome), the
+summary computed from the rows alone, and the CSV file of the rows."""
+
+from __future__ import annotations
+
+import csv
+import io
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from rlplat.eval.episodes import EpisodeResults
+from rlplat.eval.metrics import breakdown, outcome_stats, speed_ratio_bin, speed_ratio_labels
+from rlplat.io import atomic_write_text
+from rlplat.scenarios import STRATEGIES, ScenarioSet
+
+
+def route_labels(routes: torch.Tensor) -> list[str]:
+    """A direction per route from its last setpoint: ``+X``, ``-X``, ``+Y`` or ``-Y``."""
+    out = []
+    for route in routes:
+        end = route[-1, :2] - route[0, :2]
+        axis = int(end.abs().argmax())
+        out.append(("+" if end[axis] >= 0 else "-") + "XY"[axis])
+    return out
+
+
+def episode_rows(
+    results: EpisodeResults,
+    scenarios: ScenarioSet,
+    split: str,
+    routes: torch.Tensor,
+    attackers: int | None = None,
+) -> list[dict[str, Any]]:
+    """One row per scenario (in split order): its id and parameters, then its outcome.
+
+    The parameter columns describe the first attacker and defender (index 0 of the drone
+    dimension); a set with k > 1 attackers or m > 1 defenders adds ``attacker{i}_start_x/y/z``
+    and ``attacker{i}_max_speed`` per extra attacker i, ``defender{j}_route``,
+    ``defender{j}_route_direction``, ``defender{j}_strategy``, ``defender{j}_start_x/y/z`` and
+    ``defender{j}_max_speed`` per extra defender j and ``defenders_caught``, after
+    ``speed_ratio``. ``attackers``: how many of each scenario's attackers flew
+    (``env.attackers``; None: all).
+    """
+    sc = {k: v.tolist() for k, v in scenarios.split(split).items()}
+    ids = scenarios.ids[split]
+    directions = route_labels(routes)
+    keys = ("scenario_index", "captured", "grounded", "time_to_capture", "length")
+    keys += ("min_distance", "visible_fraction", "route_fraction", "evasion", "returns")
+    out = {k: getattr(results, k).tolist() for k in keys}
+    terms = {k: v.tolist() for k, v in results.term_sums.items()}
+    caught_count = results.defender_caught.sum(-1).tolist()
+    rows = []
+    for e, i in enumerate(out["scenario_index"]):
+        v_a, v_d = sc["attacker_max_speed"][i], sc["defender_max_speed"][i]
+        starts_a, starts_d = sc["attacker_start"][i], sc["defender_start"][i]
+        routes_d, strategies_d = sc["route"][i], sc["defender_strategy"][i]
+        captured = out["captured"][e]
+        extra: dict[str, Any] = {}
+        for a in range(1, len(v_a) if attackers is None else attackers):
+            extra.update(_xyz(f"attacker{a}_start", starts_a[a]))
+            extra[f"attacker{a}_max_speed"] = v_a[a]
+        for d in range(1, len(v_d)):
+            extra[f"defender{d}_route"] = routes_d[d]
+            extra[f"defender{d}_route_direction"] = directions[routes_d[d]]
+            extra[f"defender{d}_strategy"] = STRATEGIES[strategies_d[d]]
+            extra.update(_xyz(f"defender{d}_start", starts_d[d]))
+            extra[f"defender{d}_max_speed"] = v_d[d]
+        if len(v_d) > 1:
+            extra["defenders_caught"] = caught_count[e]
+        route = routes_d[0]
+        row = {
+            "scenario_id": ids[i],
+            "route": route,
+            "route_direction": directions[route],
+            "defender_strategy": STRATEGIES[strategies_d[0]],
+            **_xyz("defender_start", starts_d[0]),
+            **_xyz("attacker_start", starts_a[0]),
+            "defender_max_speed": v_d[0],
+            "attacker_max_speed": v_a[0],
+            "speed_ratio": v_a[0] / v_d[0],
+            **extra,
+            "captured": captured,
+            "grounded": out["grounded"][e],
+            "time_to_capture_s": out["time_to_capture"][e] if captured else None,
+            "steps": out["length"][e],
+            "min_distance_m": out["min_distance"][e],
+            "visible_fraction": out["visible_fraction"][e],
+            "route_fraction": out["route_fraction"][e],
+            "evasion": out["evasion"][e],
+            "return": out["returns"][e],
+            **{f"reward_{k}": v[e] for k, v in terms.items()},
+        }
+        rows.append(row)
+    return rows
+
+
+def summarize(rows: list[dict[str, Any]], terms: list[str], edges: list[float]) -> dict:
+    """Overall and per-group outcome statistics of a per-episode table (see
+    :func:`episode_rows`): what ``summary.json`` holds, computed from the rows alone."""
+
+    def col(key: str) -> np.ndarray:
+        return np.array([np.nan if r[key] is None else r[key] for r in rows], dtype=float)
+
+    columns = {
+        "captured": col("captured").astype(bool),
+        "time_to_capture": col("time_to_capture_s"),
+        "returns": col("return"),
+        "visible_fraction": col("visible_fraction"),
+        "min_distance": col("min_distance_m"),
+        "route_fraction": col("route_fraction"),
+        "evasion": col("evasion"),
+    }
+    routes = sorted({(r["route"], r["route_direction"]) for r in rows})
+    strategies = {i: s for i, s in enumerate(STRATEGIES)}
+    labels = speed_ratio_labels(edges)
+    return {
+        **outcome_stats(**columns),
+        "ground_rate": float(np.mean(col("grounded"))),
+        "mean_steps": float(np.mean(col("steps"))),
+        "reward_terms": {k: float(np.mean(col(f"reward_{k}"))) for k in terms},
+        "speed_ratio_bins": edges,
+        "by_strategy": breakdown(
+            np.array([STRATEGIES.index(r["defender_strategy"]) for r in rows]),
+            strategies,
+            columns,
+        ),
+        "by_route": breakdown(
+            col("route").astype(int), {i: f"{i} ({d})" for i, d in routes}, columns
+        ),
+        "by_speed_ratio": breakdown(
+            speed_ratio_bin(col("speed_ratio"), edges), dict(enumerate(labels)), columns
+        ),
+    }
+
+
+def _xyz(name: str, value: list[float]) -> dict[str, float]:
+    return {f"{name}_{a}": v for a, v in zip("xyz", value, strict=True)}
+
+
+def write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=list(rows[0]), lineterminator="\n")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: _cell(v) for k, v in row.items()})
+    atomic_write_text(path, buffer.getvalue())
+
+
+def _cell(value: Any) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, bool):
+        return str(int(value))
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    return str(value)

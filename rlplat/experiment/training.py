@@ -1,0 +1,486 @@
+"""The training run: SAC over the batched pursuit env, validation, checkpoints, summary.
+
+``train(cfg)`` is what ``train.py`` calls; tests and notebooks call it the same way. It reads
+like TorchRL's ``sota-implementations/sac/sac.py``: ``make_*`` helpers build the parts, one
+linear loop collects, stores and updates, and validation and the end-of-run test are functions
+of a :class:`Run` (what a run is made of) and its :class:`RunState` (what it has done so far).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import random
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.envs import RewardSum, TransformedEnv
+from torchrl.envs.utils import ExplorationType
+from tqdm import tqdm
+
+from rlplat.agents.checkpoint import (
+    check_compatible,
+    load_checkpoint,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+)
+from rlplat.agents.policies import REFERENCE, NoisyPolicy, make_scripted_policy
+from rlplat.agents.sac import NetSpec, SACAgent, net_spec
+from rlplat.agents.transitions import replay_rows
+from rlplat.envs.pursuit import PursuitEnv
+from rlplat.errors import ConfigError
+from rlplat.eval.episodes import SCORE_NAME, EpisodeResults, evaluate
+from rlplat.eval.plots import plot_learning_curve
+from rlplat.experiment.factory import build_env, resolve_scenarios
+from rlplat.experiment.logger import Metrics, make_logger
+from rlplat.experiment.schema import check_resume, validate_train_config  # noqa: F401
+from rlplat.io import atomic_write_text
+from rlplat.scenarios import ScenarioSet
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RunState:
+    """What a run has done so far: its counters and its best validation (checkpointed)."""
+
+    frames: int = 0
+    updates: int = 0
+    evals: int = 0
+    wall_time_s: float = 0.0
+    best_score: float = -1.0
+    best_capture_rate: float = -1.0
+    best_mean_return: float = -float("inf")
+    best_frames: int = 0
+
+    COUNTERS = ("frames", "updates", "evals", "wall_time_s")
+
+    def as_checkpoint(self) -> dict[str, dict[str, Any]]:
+        """The ``counters`` and ``best`` entries of a checkpoint."""
+        best = {
+            k.removeprefix("best_"): v for k, v in asdict(self).items() if k.startswith("best_")
+        }
+        return {"counters": {k: getattr(self, k) for k in self.COUNTERS}, "best": best}
+
+    @classmethod
+    def from_checkpoint(cls, state: dict[str, Any]) -> RunState:
+        best = dict(state["best"])
+        best.setdefault("score", best["capture_rate"])  # written before role-aware scores
+        return cls(**state["counters"], **{f"best_{k}": v for k, v in best.items()})
+
+
+@dataclass
+class Run:
+    """What one training run is made of (everything :func:`validate` and checkpoints need)."""
+
+    run_dir: Path
+    role: str
+    env: PursuitEnv  # the training env (its scenario walk is checkpointed)
+    val_env: PursuitEnv
+    scenarios: ScenarioSet
+    agent: SACAgent
+    net: NetSpec
+    interface: dict[str, Any]
+    config: dict[str, Any]  # resolved
+    metrics: Metrics | None = None
+
+    @property
+    def ckpt_dir(self) -> Path:
+        return self.run_dir / "checkpoints"
+
+
+def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
+    """Train the configured learner with SAC; returns the run's summary (also summary.json).
+
+    The run directory receives ``config.yaml`` (resolved), ``checkpoints/{best,last}.pt``,
+    ``metrics/`` (CSV), ``learning_curve.png`` and ``summary.json``.
+    """
+    # Check everything before any work starts.
+    validate_train_config(cfg)
+    run_dir, algo = make_run_dir(run_dir), cfg.algo
+    config = OmegaConf.to_container(cfg, resolve=True)
+    resume_state = load_resume_state(run_dir, config) if cfg.resume else None
+    if cfg.train.threads is not None:
+        # On a few cores, runs side by side (hydra/launcher=joblib) want one thread each:
+        # torch's threads wait for each other on every small kernel when a core is taken.
+        torch.set_num_threads(cfg.train.threads)
+    device = torch.device(cfg.train.device)
+
+    # Create the environments
+    scenarios = resolve_scenarios(cfg, cfg.scenarios_dir)
+    env = build_env(cfg, scenarios=scenarios, split="train", num_envs=algo.num_envs, device=device)
+    train_env = make_train_env(env)
+    val_env = make_eval_env(cfg, scenarios, "val", device)
+    net = net_spec(env.obs_fn.scale, env.drone_action_spec.shape[-1], algo)
+    interface = make_interface(cfg, env)
+    if resume_state is not None:
+        check_compatible(resume_state, net, interface, run_dir / "checkpoints" / "last.pt")
+
+    # Create the agent
+    seed_everything(cfg.seed, env)
+    agent = make_agent(net, env, algo, device)
+    run = Run(run_dir, cfg.drone.learner, env, val_env, scenarios, agent, net, interface, config)
+    state = RunState()
+    if resume_state is not None:
+        state = RunState.from_checkpoint(resume_state)
+        agent.load_state_dict(resume_state["agent"])
+        set_rng_state(resume_state["rng"])
+        env.sampler.generator.set_state(resume_state["scenario_rng"])
+        log.info("resuming %s at %d frames", run_dir, state.frames)
+
+    # Create the logger; measure the scripted reference on the validation split
+    run_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(run_dir / "config.yaml", OmegaConf.to_yaml(config))
+    run.metrics = Metrics(run_dir, make_logger(cfg.logger, run_dir, cfg.drone.name, config))
+    reference = evaluate(val_env, make_scripted_policy(REFERENCE[run.role], val_env))
+    run.metrics.log({f"reference/{k}": v for k, v in reference.summary().items()}, state.frames)
+    log.info("%s on the validation split: %s", REFERENCE[run.role], outcome(reference, run.role))
+
+    # Create the replay buffer and the collector
+    buffer = TensorDictReplayBuffer(
+        storage=LazyTensorStorage(algo.buffer_size, device=device), batch_size=algo.batch_size
+    )  # not checkpointed: a resumed run refills it (see the scripted start below)
+    # A scripted init_policy fills the buffer before the collector starts, also on a resume;
+    # otherwise the collector starts with random actions, or with the policy on a resume.
+    scripted_start = algo.init_policy != "random" and algo.init_random_frames > 0
+    random_frames = 0 if resume_state is not None or scripted_start else algo.init_random_frames
+    collector = make_collector(train_env, agent.policy, algo, random_frames, device)
+
+    # Scripted start
+    start = time.perf_counter() - state.wall_time_s
+    deadline = None if cfg.train.max_minutes is None else start + 60.0 * cfg.train.max_minutes
+    if scripted_start:
+        prefilled = prefill(buffer, train_env, env, algo)
+        if resume_state is None:  # a resumed run has counted those frames already
+            state.frames += prefilled
+        log.info("replay buffer filled with %d frames of noisy %s (%d transitions)",
+                 prefilled, algo.init_policy, len(buffer))  # fmt: skip
+
+    # Training loop
+    every = cfg.train.eval_every_frames
+    next_eval = (state.frames // every + 1) * every
+    update_credit, last_val = 0.0, state.best_score if state.best_score >= 0 else float("nan")
+    progress = Progress(cfg.train, state, start)
+    frames_at_start, session_start = state.frames, time.perf_counter()
+    try:
+        for batch in collector:
+            t_collected = time.perf_counter()
+            state.frames += batch.numel()
+            buffer.extend(replay(batch, env.group, algo))
+            values = episode_metrics(batch, list(env.reward_fn.weights))
+
+            # Optimization: the buffer holds one transition per learning drone and frame.
+            if len(buffer) >= max(algo.init_random_frames * env.team_size, algo.batch_size):
+                update_credit += batch.numel() * algo.utd_ratio
+                losses = []
+                while update_credit >= 1.0:
+                    losses.append(agent.update(buffer.sample()))
+                    update_credit -= 1.0
+                    state.updates += 1
+                if losses:
+                    stacked = {k: torch.stack([x[k] for x in losses]) for k in losses[0]}
+                    values.update({f"train/{k}": v.mean().item() for k, v in stacked.items()})
+
+            # Logging
+            now = time.perf_counter()
+            state.wall_time_s = now - start
+            values["time/update_s"] = now - t_collected
+            values["time/frames_per_s"] = (state.frames - frames_at_start) / (now - session_start)
+            values["train/updates"] = state.updates
+            run.metrics.log(values, state.frames)
+
+            # Validation and the last checkpoint
+            out_of_budget = state.frames >= cfg.train.total_frames or (
+                deadline is not None and now >= deadline
+            )
+            if state.frames >= next_eval or out_of_budget:
+                last_val = validate(run, state, start).score(run.role)
+                next_eval += every
+                state.wall_time_s = time.perf_counter() - start
+                save_checkpoint(run.ckpt_dir / "last.pt", checkpoint(run, state))
+            progress.update(state, last_val)
+            if out_of_budget:
+                break
+    finally:
+        progress.close()
+        collector.shutdown()
+
+    # Test the best policy on the test split
+    summary = test_best(cfg, run, state, reference, device)
+    plot_learning_curve(run.metrics.history, run_dir / "learning_curve.png")
+    run.metrics.close()
+    return summary
+
+
+# Set-up ----------------------------------------------------------------------------------
+
+
+def make_run_dir(run_dir: str | Path | None) -> Path:
+    """The given run directory, or Hydra's output directory under ``@hydra.main``."""
+    if run_dir is not None:
+        return Path(run_dir)
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        raise ConfigError("run_dir: not under @hydra.main; pass train(cfg, run_dir=...)")
+    return Path(HydraConfig.get().runtime.output_dir)
+
+
+def load_resume_state(run_dir: Path, config: dict[str, Any]) -> dict[str, Any]:
+    """The run's ``last.pt``, after checking that this config is the run's own (only the
+    budget may change on a resume)."""
+    state = load_checkpoint(run_dir / "checkpoints" / "last.pt")
+    saved = run_dir / "config.yaml"
+    check_resume(OmegaConf.to_container(OmegaConf.load(saved)) if saved.is_file() else {}, config)
+    return state
+
+
+def make_interface(cfg: DictConfig, env: PursuitEnv) -> dict[str, Any]:
+    """The drone interface a checkpoint is bound to: the learner, its observation and action,
+    and how many drones of each role flew (what the observation's blocks are)."""
+    return {
+        "drone.learner": cfg.drone.learner,
+        "observation.name": cfg.observation.name,
+        "action.name": cfg.action.name,
+        "attackers": env.num_attackers,
+        "defenders": env.num_defenders,
+    }
+
+
+def make_train_env(env: PursuitEnv) -> TransformedEnv:
+    """The training env: episode sums of the reward and of each weighted term."""
+    terms = list(env.reward_fn.weights)
+    return TransformedEnv(
+        env,
+        RewardSum(
+            in_keys=["reward", *[("reward_terms", k) for k in terms]],
+            out_keys=["episode_reward", *[("episode_terms", k) for k in terms]],
+        ),
+    )
+
+
+def make_eval_env(cfg: DictConfig, scenarios: ScenarioSet, split: str, device) -> PursuitEnv:
+    """One env per scenario of ``split``, walked in order (what :func:`evaluate` needs)."""
+    n = len(scenarios.split(split))
+    return build_env(
+        cfg, scenarios=scenarios, split=split, num_envs=n, device=device,
+        scenario_order="sequential",
+    )  # fmt: skip
+
+
+def seed_everything(seed: int, env: PursuitEnv) -> None:
+    """The run's one root seed: torch, numpy, Python and the env's scenario walk."""
+    torch.manual_seed(seed)
+    np.random.seed(seed)
+    random.seed(seed)
+    env.set_seed(seed)
+
+
+def make_agent(net: NetSpec, env: PursuitEnv, algo: DictConfig, device) -> SACAgent:
+    return SACAgent(
+        net,
+        env.drone_action_spec,
+        gamma=algo.gamma,
+        tau=algo.tau,
+        actor_lr=algo.actor_lr,
+        critic_lr=algo.critic_lr,
+        alpha_lr=algo.alpha_lr,
+        alpha_init=algo.alpha_init,
+        target_entropy=algo.target_entropy,
+        loss_function=algo.loss_function,
+        compile=algo.compile,
+        group=env.group,
+        device=device,
+    )
+
+
+def make_collector(env, policy, algo: DictConfig, init_random_frames: int, device) -> Collector:
+    return Collector(
+        env,
+        policy,
+        frames_per_batch=algo.frames_per_batch,
+        total_frames=-1,
+        init_random_frames=init_random_frames,
+        exploration_type=ExplorationType.RANDOM,
+        device=device,
+        auto_register_policy_transforms=False,  # a memoryless MLP policy: no transforms needed
+    )
+
+
+# Replay ----------------------------------------------------------------------------------
+
+
+def replay(batch, group: str | None, algo: DictConfig):
+    """A collected batch as the transitions the replay buffer stores."""
+    return replay_rows(
+        batch,
+        group=group,
+        potential_key=algo.potential_key,
+        potential_weight=algo.potential_weight,
+        gamma=algo.gamma,
+        n_steps=algo.n_steps,
+    )
+
+
+def prefill(buffer, train_env, env: PursuitEnv, algo: DictConfig) -> int:
+    """Fill the replay buffer with ``algo.init_random_frames`` frames of the scripted
+    ``algo.init_policy`` plus Gaussian noise (``algo.init_noise``); returns the frames."""
+    policy = NoisyPolicy(make_scripted_policy(algo.init_policy, env), algo.init_noise,
+                         env.action_key)  # fmt: skip
+    steps = algo.frames_per_batch // algo.num_envs
+    frames, td = 0, train_env.reset()
+    while frames < algo.init_random_frames:
+        trajectory = []
+        for _ in range(steps):  # what a collector does, with a scripted policy
+            out, td = train_env.step_and_maybe_reset(policy(td))
+            trajectory.append(out)
+        batch = torch.stack(trajectory, dim=1)  # (envs, time), as a collector's batch
+        buffer.extend(replay(batch, env.group, algo))
+        frames += batch.numel()
+    return frames
+
+
+# Validation, checkpoints, test -----------------------------------------------------------
+
+
+def checkpoint(run: Run, state: RunState) -> dict[str, Any]:
+    """What ``best.pt`` and ``last.pt`` hold: the policy, the learner, the run's state."""
+    return {
+        "net": run.net.as_dict(),
+        "interface": run.interface,
+        "actor": run.agent.actor.state_dict(),
+        "agent": run.agent.state_dict(),
+        **state.as_checkpoint(),
+        "rng": rng_state(),
+        "scenario_rng": run.env.sampler.generator.get_state(),
+        "scenario_digest": run.scenarios.digest,
+        "config": run.config,
+    }
+
+
+def validate(run: Run, state: RunState, start: float) -> EpisodeResults:
+    """Fly the validation split; keep the policy as ``best.pt`` if it beats the best so far
+    (on the role's score, then the mean return)."""
+    t0 = time.perf_counter()
+    results = evaluate(run.val_env, run.agent.policy)
+    state.evals += 1
+    values = {f"eval/{k}": v for k, v in results.summary().items()}
+    values["time/eval_s"] = time.perf_counter() - t0
+    values["time/elapsed_s"] = time.perf_counter() - start
+    run.metrics.log(values, state.frames)
+    score = results.score(run.role)
+    better = (score, results.mean_return) > (state.best_score, state.best_mean_return)
+    if better:
+        state.best_score, state.best_capture_rate = score, results.capture_rate
+        state.best_mean_return, state.best_frames = results.mean_return, state.frames
+        save_checkpoint(run.ckpt_dir / "best.pt", checkpoint(run, state))
+    mark = " (best)" if better else ""
+    log.info("frames %d: validation %s, mean return %.2f%s", state.frames,
+             outcome(results, run.role), results.mean_return, mark)  # fmt: skip
+    return results
+
+
+def test_best(
+    cfg: DictConfig, run: Run, state: RunState, reference: EpisodeResults, device
+) -> dict[str, Any]:
+    """Fly the best policy on the test split; write and return the run's summary."""
+    run.agent.actor.load_state_dict(load_checkpoint(run.ckpt_dir / "best.pt")["actor"])
+    test_env = make_eval_env(cfg, run.scenarios, "test", device)
+    test = evaluate(test_env, run.agent.policy)
+    run.metrics.log({f"test/{k}": v for k, v in test.summary().items()}, state.frames)
+    role, n_test = run.role, len(test_env.scenarios)
+    summary = {
+        "frames": state.frames,
+        "updates": state.updates,
+        "wall_time_s": round(state.wall_time_s, 3),
+        "val_score": SCORE_NAME[role],
+        "best_val_score": state.best_score,
+        "best_val_capture_rate": state.best_capture_rate,
+        "best_val_mean_return": state.best_mean_return,
+        "best_frames": state.best_frames,
+        "reference_policy": REFERENCE[role],
+        "reference_val_score": reference.score(role),
+        "reference_val_capture_rate": reference.capture_rate,
+        "test_score": test.score(role),
+        "test_capture_rate": test.capture_rate,
+        "test_mean_return": test.mean_return,
+        "test_route_fraction": test.route_fraction.mean().item(),
+        "test_mean_time_to_capture_s": test.summary().get("mean_time_to_capture_s"),
+        "test_scenarios": n_test,
+        "scenario_digest": run.scenarios.digest,
+        "scenario_dir": str(run.scenarios.path),
+        "drone": cfg.drone.name,
+        "attackers": run.scenarios.attackers,
+        "defenders": run.scenarios.defenders,
+        "seed": cfg.seed,
+        "run_dir": str(run.run_dir),
+    }
+    atomic_write_text(run.run_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
+    log.info("test %s (%d scenarios), mean return %.2f; run directory %s",
+             outcome(test, role), n_test, test.mean_return, run.run_dir)  # fmt: skip
+    return summary
+
+
+# Reporting -------------------------------------------------------------------------------
+
+
+def outcome(results: EpisodeResults, role: str) -> str:
+    """The capture rate, and a defender's evasion score before it, for a log line."""
+    text = f"capture rate {results.capture_rate:.3f}"
+    if SCORE_NAME[role] != "capture_rate":
+        text = f"{SCORE_NAME[role].replace('_', ' ')} {results.score(role):.3f}, {text}"
+    return text
+
+
+def episode_metrics(batch, terms: list[str]) -> dict[str, float]:
+    """Means over the training episodes that ended in this batch."""
+    done = batch["next", "done"].squeeze(-1)
+    if not done.any():
+        return {}
+    nxt = batch["next"]
+    values = {
+        "train/episode_return": nxt["episode_reward"][done].mean().item(),
+        "train/capture_rate": nxt["captured"][done].float().mean().item(),
+        "train/episodes": int(done.sum()),
+    }
+    values.update({f"reward/{k}": nxt["episode_terms", k][done].mean().item() for k in terms})
+    return values
+
+
+class Progress:
+    """The progress bar: against the time budget when ``train.max_minutes`` is set (a run
+    ends at the first budget reached, which on a CPU is the time), else against the frames."""
+
+    def __init__(self, node: DictConfig, state: RunState, start: float) -> None:
+        self.start, self.by_time = start, node.max_minutes is not None
+        total, initial = (
+            (round(60.0 * node.max_minutes), round(state.wall_time_s))
+            if self.by_time
+            else (node.total_frames, state.frames)
+        )
+        self.bar = tqdm(
+            total=total,
+            initial=min(initial, total),
+            unit="s" if self.by_time else "frame",
+            unit_scale=not self.by_time,
+            disable=not node.progress,
+            dynamic_ncols=True,
+        )
+
+    def update(self, state: RunState, last_val: float) -> None:
+        done = round(time.perf_counter() - self.start) if self.by_time else state.frames
+        self.bar.update(max(0, min(done, self.bar.total) - self.bar.n))
+        self.bar.set_postfix(
+            {"frames": f"{state.frames:,}", "val": f"{last_val:.2f}"}, refresh=False
+        )
+
+    def close(self) -> None:
+        self.bar.close()
