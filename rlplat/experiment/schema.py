@@ -1,0 +1,429 @@
+"""One check of a composed config's values before any work starts, and of a resume's config.
+
+``validate_train_config`` checks ``conf/train.yaml`` as composed (whichever group options were
+chosen) and ``validate_evaluate_config`` checks ``conf/evaluate.yaml``. Both raise
+:class:`~rlplat.errors.ConfigError` with one line that names the first offending field and its
+value, or the valid choices, e.g. ``algo.actor_lr: must be a finite number > 0, got nan``.
+
+The rules are tables of dotted key -> rule (:mod:`rlplat.experiment.rules`). A node that holds
+table keys (``train``, ``env``, ``algo``, ``logger``, ...) refuses a key the table does not
+name, and a key the table names must be set unless its rule is ``Opt``. The component nodes
+(``dynamics``, ``observation``, ``action``) take the knobs of the registered class their
+``name`` picks (optional: the class's default applies); ``scenario`` is checked by
+:meth:`ScenarioSpec.from_dict`. Rules between fields follow the tables. NaN and infinity are
+refused wherever a number is expected.
+
+``config_diff`` and ``check_resume`` compare a run's saved config with the one it resumes with.
+"""
+
+from __future__ import annotations
+
+import inspect
+import math
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any
+
+from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from rlplat.envs.components import ACTIONS, OBSERVATIONS, REWARD_TERMS
+from rlplat.envs.dynamics import DYNAMICS
+from rlplat.envs.pursuit import ORDERS, ROLES
+from rlplat.errors import ConfigError
+from rlplat.eval.baselines import BASELINES
+from rlplat.experiment.rules import (
+    COUNT,
+    FINITE,
+    MISSING,
+    NON_NEGATIVE,
+    POSITIVE,
+    THREADS,
+    Choice,
+    Num,
+    Opt,
+    Rule,
+    Seq,
+    Text,
+    check_table,
+    device,
+    flag,
+    lookup,
+    show,
+)
+from rlplat.scenarios import SPLITS, ScenarioSpec
+
+# Rules of this config -----------------------------------------------------------------------
+
+
+def scenario(value: Any) -> str | None:
+    """A scenario family (``conf/scenario/``): :meth:`ScenarioSpec.from_dict` names the field."""
+    if not isinstance(value, Mapping):
+        return f"must be a mapping, got {show(value)}"
+    try:
+        ScenarioSpec.from_dict(value)
+    except ConfigError:
+        raise
+    except (TypeError, ValueError, KeyError) as e:
+        return f"invalid ({show(str(e))})"
+    return None
+
+
+def reward_terms(value: Any) -> str | None:
+    """A non-empty mapping of reward terms to weights (each weight is checked on its own)."""
+    if isinstance(value, Mapping) and value:
+        return None
+    return f"must weigh at least one of {', '.join(REWARD_TERMS)}, got {show(value)}"
+
+
+#: Who may fly ``algo.init_random_frames``: uniform actions, or a baseline of the learner's role.
+INIT_POLICIES = ("random", *BASELINES)
+#: ``evaluate.py policy=`` choices: the run's checkpoint, or a baseline.
+POLICIES = ("checkpoint", *BASELINES)
+#: Env outputs a learner's potential-based shaping may read (``algo.potential_key``).
+POTENTIAL_KEYS = ("distance",)
+#: torchrl's critic regression losses.
+LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")
+#: wandb modes that ``logger.mode`` may set (others are read from ``WANDB_MODE``).
+WANDB_MODES = ("offline", "online")
+
+
+def _activations() -> Iterable[str]:
+    from rlplat.agents.sac import ACTIVATIONS  # rlplat.agents runs its training loop on import
+
+    return ACTIVATIONS
+
+
+def _backends() -> Iterable[str]:
+    from rlplat.agents.metrics import BACKENDS
+
+    return BACKENDS
+
+
+# Tables -----------------------------------------------------------------------------------
+
+#: conf/train.yaml, but for the component groups (see ``_component_rules``).
+TRAIN_RULES: dict[str, Rule] = {
+    "seed": Num(integer=True, ge=0, le=2**32 - 1),  # numpy's seed range
+    "resume": flag,
+    "scenarios_dir": Text(null=True),
+    "scenario": scenario,
+    "train.total_frames": COUNT,
+    "train.max_minutes": Num(gt=0, null=True),
+    "train.eval_every_frames": COUNT,
+    "train.device": device,
+    "train.progress": flag,
+    "train.threads": THREADS,
+    "env.control_period": POSITIVE,
+    "env.time_limit": POSITIVE,
+    "env.capture_radius": POSITIVE,
+    "env.ground_altitude": NON_NEGATIVE,  # the dynamics hold every drone at z >= 0
+    "env.vision_semi_axes": Seq(POSITIVE, n=3),
+    "env.terminate_out_of_view": flag,
+    "env.scenario_order": Choice(ORDERS),
+    "env.setpoint_acceptance": POSITIVE,
+    "env.setpoint_gain": POSITIVE,
+    "env.pursuit_gain": POSITIVE,
+    "env.compile_step": flag,
+    "env.defender_network": Text(null=True),
+    "env.attackers": Num(integer=True, ge=1, null=True),
+    "reward.distance_scale": Opt(POSITIVE),
+    "reward.terms": reward_terms,
+    **{f"reward.terms.{term}": Opt(FINITE) for term in REWARD_TERMS},
+    "algo.name": Text(),
+    "algo.num_envs": COUNT,
+    "algo.frames_per_batch": COUNT,
+    "algo.init_random_frames": Num(integer=True, ge=0),
+    "algo.init_policy": Text(),  # one of INIT_POLICIES for drone.learner, checked below
+    "algo.init_noise": NON_NEGATIVE,
+    "algo.utd_ratio": POSITIVE,
+    "algo.batch_size": COUNT,
+    "algo.buffer_size": COUNT,
+    "algo.gamma": Num(ge=0, lt=1),
+    "algo.n_steps": COUNT,
+    "algo.potential_key": Choice(POTENTIAL_KEYS),
+    "algo.potential_weight": FINITE,
+    "algo.tau": Num(gt=0, le=1),
+    "algo.actor_lr": POSITIVE,
+    "algo.critic_lr": POSITIVE,
+    "algo.alpha_lr": POSITIVE,
+    "algo.alpha_init": POSITIVE,
+    "algo.target_entropy": Num(words=("auto",)),
+    "algo.loss_function": Choice(LOSS_FUNCTIONS),
+    "algo.actor_cells": Seq(COUNT),
+    "algo.critic_cells": Seq(COUNT),
+    "algo.activation": Choice(_activations),
+    "algo.action_margin": Num(ge=0, le=1),
+    "algo.compile": flag,
+    "drone.name": Text(),
+    "drone.learner": Choice(ROLES),
+    "logger.backend": Choice(_backends),
+}
+
+#: Keys of the ``logger`` node besides ``backend``, per backend.
+LOGGER_RULES: dict[str, dict[str, Rule]] = {
+    "wandb": {"logger.project": Opt(Text()), "logger.mode": Opt(Choice(WANDB_MODES))},
+}
+
+#: Knobs of the dynamics models (conf/dynamics/, SI units): what physics needs positive is
+#: positive; drag, gravity and the vertical integral term may be 0.
+DYNAMICS_KNOBS: dict[str, Rule] = {
+    "physics_dt": POSITIVE,
+    "mass": POSITIVE,
+    "tau_xy": POSITIVE,
+    "tau_z": POSITIVE,
+    "a_xy_max": POSITIVE,
+    "a_up_max": POSITIVE,
+    "a_down_max": POSITIVE,
+    "drag_xy": NON_NEGATIVE,
+    "drag_z": NON_NEGATIVE,
+    "gravity": NON_NEGATIVE,
+    "arm_length": POSITIVE,
+    "inertia_xx": POSITIVE,
+    "inertia_yy": POSITIVE,
+    "inertia_zz": POSITIVE,
+    "max_rotor_thrust": POSITIVE,
+    "motor_time_constant": POSITIVE,
+    "yaw_torque_coefficient": POSITIVE,
+    "tilt_gain": POSITIVE,
+    "max_tilt": Num(gt=0, lt=math.pi / 2),
+    "vz_p_gain": POSITIVE,
+    "vz_i_gain": NON_NEGATIVE,
+    "vz_i_limit": NON_NEGATIVE,
+    "angle_gain": POSITIVE,
+    "max_angle_rate": POSITIVE,
+    "rate_gain": POSITIVE,
+}
+#: Knobs of the observations (conf/observation/).
+OBSERVATION_KNOBS: dict[str, Rule] = {"position_scale": POSITIVE, "velocity_scale": POSITIVE}
+#: Component groups: registry, knob rules, and the arguments the env factory passes itself.
+COMPONENTS: dict[str, tuple[Mapping[str, Any], Mapping[str, Rule], tuple[str, ...]]] = {
+    "dynamics": (DYNAMICS, DYNAMICS_KNOBS, ("num_envs", "num_drones", "device")),
+    "observation": (OBSERVATIONS, OBSERVATION_KNOBS, ("opponents", "mates", "in_play")),
+    "action": (ACTIONS, {}, ()),
+}
+
+#: conf/evaluate.yaml.
+EVALUATE_RULES: dict[str, Rule] = {
+    "run_dir": Text(),
+    "policy": Choice(POLICIES),
+    "ckpt": Text(),  # best | last | a checkpoint path
+    "split": Choice(SPLITS),
+    "compare": flag,
+    "strict_scenarios": flag,
+    "scenarios_dir": Text(null=True),
+    "attackers": Num(integer=True, ge=1, null=True),
+    "out_dir": Text(null=True),
+    "device": device,
+    "threads": THREADS,
+    "trajectories": Num(integer=True, ge=0),
+    "plots": flag,
+    "speed_ratio_bins": Seq(POSITIVE, increasing=True),
+}
+
+
+def knobs(cls: Callable[..., Any], factory_args: Iterable[str]) -> dict[str, Any]:
+    """A component class's config knobs and their defaults (its keyword arguments but those
+    the env factory passes)."""
+    params = inspect.signature(cls).parameters.values()
+    return {p.name: p.default for p in params if p.name not in factory_args}
+
+
+def _component_rules(c: Mapping[str, Any]) -> dict[str, Rule]:
+    rules: dict[str, Rule] = {}
+    for group, (registry, rule_of, factory_args) in COMPONENTS.items():
+        rules[f"{group}.name"] = Choice(registry)
+        name = lookup(c, f"{group}.name")
+        if isinstance(name, str) and name in registry:
+            for knob in knobs(registry[name], factory_args):
+                rules[f"{group}.{knob}"] = Opt(rule_of.get(knob, FINITE))
+    return rules
+
+
+# Rules between fields ---------------------------------------------------------------------
+
+
+def _component(c: Mapping[str, Any], group: str) -> dict[str, Any]:
+    """The knobs a component is built with: the node's over the class's defaults."""
+    registry, _, factory_args = COMPONENTS[group]
+    node = dict(c[group])
+    return {**knobs(registry[node.pop("name")], factory_args), **node}
+
+
+def _learning_drones(c: Mapping[str, Any]) -> int:
+    """Drones that share the policy, as far as the config tells (1 with ``scenarios_dir``)."""
+    if c["scenarios_dir"] is not None:
+        return 1
+    if c["drone"]["learner"] == "defender":
+        return c["scenario"].get("defenders", 1)
+    return c["env"]["attackers"] or c["scenario"].get("attackers", 1)
+
+
+def _check_train_fields(c: Mapping[str, Any]) -> None:
+    algo, env, learner = c["algo"], c["env"], c["drone"]["learner"]
+    if algo["frames_per_batch"] % algo["num_envs"]:
+        raise ConfigError(
+            f"algo.frames_per_batch: {algo['frames_per_batch']} is not a multiple of "
+            f"algo.num_envs={algo['num_envs']}"
+        )
+    valid = [k for k in INIT_POLICIES if k == "random" or BASELINES[k].role == learner]
+    policy = algo["init_policy"]
+    if policy not in INIT_POLICIES:
+        raise ConfigError(f"algo.init_policy: unknown {show(policy)}; valid: {', '.join(valid)}")
+    if policy not in valid:
+        raise ConfigError(
+            f"algo.init_policy: {show(policy)} flies the {BASELINES[policy].role}, "
+            f"drone.learner is the {learner}; valid: {', '.join(valid)}"
+        )
+    first_update = max(algo["batch_size"], algo["init_random_frames"] * _learning_drones(c))
+    if algo["buffer_size"] < first_update:
+        raise ConfigError(
+            f"algo.buffer_size: {algo['buffer_size']} transitions never reach the "
+            f"{first_update} the first update waits for (algo.batch_size, "
+            "algo.init_random_frames x learning drones)"
+        )
+    k, scenario_k = env["attackers"], c["scenario"].get("attackers", 1)
+    if k is not None and c["scenarios_dir"] is None and k > scenario_k:
+        raise ConfigError(f"env.attackers: {k}, the scenarios have {scenario_k} (at most)")
+    dynamics = _component(c, "dynamics")
+    if dynamics["physics_dt"] > env["control_period"]:
+        raise ConfigError(
+            f"dynamics.physics_dt: {dynamics['physics_dt']} s is longer than one control "
+            f"period (env.control_period={env['control_period']} s)"
+        )
+    if "max_rotor_thrust" in dynamics:
+        thrust, weight = dynamics["max_rotor_thrust"], dynamics["mass"] * dynamics["gravity"]
+        if 4 * thrust <= weight:
+            raise ConfigError(
+                f"dynamics.max_rotor_thrust: 4 rotors of {thrust} N cannot hold a weight of "
+                f"{weight:g} N (dynamics.mass x dynamics.gravity)"
+            )
+
+
+def _check_evaluate_fields(c: Mapping[str, Any]) -> None:
+    if c["compare"] and c["out_dir"] is not None:
+        raise ConfigError(
+            f"out_dir: must be null with compare=true (each policy has its own), "
+            f"got {show(c['out_dir'])}"
+        )
+    if c["policy"] != "checkpoint" and c["ckpt"] != "best":
+        raise ConfigError(
+            f"ckpt: {show(c['ckpt'])} is for policy=checkpoint only, got policy={c['policy']}"
+        )
+
+
+# Checking ---------------------------------------------------------------------------------
+
+
+def validate_train_config(cfg: DictConfig) -> None:
+    """Check a composed ``conf/train.yaml`` before any work starts.
+
+    Raises:
+        ConfigError: one line naming the first offending field and its value.
+    """
+    c = _resolved(cfg)
+    backend = lookup(c, "logger.backend")
+    logger = LOGGER_RULES.get(backend, {}) if isinstance(backend, str) else {}
+    rules = {**TRAIN_RULES, **_component_rules(c), **logger}
+    check_table(c, rules)
+    _check_train_fields(c)
+
+
+def validate_evaluate_config(cfg: DictConfig) -> None:
+    """Check a composed ``conf/evaluate.yaml`` before any work starts (the run directory
+    itself is read, and checked, by the evaluator).
+
+    Raises:
+        ConfigError: one line naming the first offending field and its value.
+    """
+    c = _resolved(cfg)
+    check_table(c, EVALUATE_RULES)
+    _check_evaluate_fields(c)
+
+
+def _resolved(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
+    """The config as plain containers, interpolations resolved (``???`` stays as it is)."""
+    if not isinstance(cfg, DictConfig):
+        return dict(cfg)
+    if "hydra" in cfg:  # only where composed with return_hydra_config
+        cfg = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
+    try:
+        return OmegaConf.to_container(cfg, resolve=True)
+    except OmegaConfBaseException as e:
+        message = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise ConfigError(f"{getattr(e, 'full_key', None) or 'config'}: {message}") from None
+
+
+# Resume -----------------------------------------------------------------------------------
+
+#: What a resumed run may change (a trailing ``.*``: the whole node): its budget, its progress
+#: bar, knobs of speed that leave what is learned alone, and where its metrics go (the CSV
+#: files are always written). Everything else, ``train.device`` included, must stay.
+RESUME_FREE: tuple[str, ...] = (
+    "resume",
+    "train.total_frames",
+    "train.max_minutes",
+    "train.progress",
+    "train.threads",
+    "env.compile_step",
+    "algo.compile",
+    "logger.*",
+)
+
+
+def _flat(node: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(node, (DictConfig, ListConfig)):
+        node = OmegaConf.to_container(node, resolve=True)
+    if not isinstance(node, Mapping) or (prefix and not node):
+        return {prefix: node}
+    out: dict[str, Any] = {}
+    for key, value in node.items():
+        out.update(_flat(value, f"{prefix}.{key}" if prefix else str(key)))
+    return out
+
+
+def _ignored(key: str, ignore: Iterable[str]) -> bool:
+    for pattern in ignore:
+        base = pattern.removesuffix(".*")
+        if key == base or key.startswith(base + "."):
+            return True
+    return False
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
+        return True
+    return a == b and isinstance(a, bool) == isinstance(b, bool)
+
+
+def config_diff(
+    saved: Mapping[str, Any], current: Mapping[str, Any], ignore: Iterable[str] = RESUME_FREE
+) -> list[str]:
+    """Dotted keys whose values differ between two resolved configs (added, removed or
+    changed; a list is one value), but for those ``ignore`` matches (``RESUME_FREE``), sorted."""
+    ignore = tuple(ignore)
+    a, b = _flat(saved), _flat(current)
+    keys = (k for k in a.keys() | b.keys() if not _ignored(k, ignore))
+    return sorted(k for k in keys if not _same(a.get(k, MISSING), b.get(k, MISSING)))
+
+
+def check_resume(saved: Mapping[str, Any], current: Mapping[str, Any]) -> None:
+    """Refuse to resume a run whose saved config (its ``config.yaml``) differs from the current
+    one in more than ``RESUME_FREE``.
+
+    Raises:
+        ConfigError: one line listing each differing key with its saved -> current value.
+    """
+    keys = config_diff(saved, current)
+    if not keys:
+        return
+    a, b = _flat(saved), _flat(current)
+
+    def value(flat: dict[str, Any], key: str) -> str:
+        return "absent" if key not in flat else show(flat[key], limit=40)
+
+    shown = [f"{k} ({value(a, k)} -> {value(b, k)})" for k in keys[:10]]
+    more = f" and {len(keys) - 10} more" if len(keys) > 10 else ""
+    raise ConfigError(
+        f"resume: the config differs from the run's config.yaml in {', '.join(shown)}{more}; "
+        f"only {', '.join(RESUME_FREE)} may change on a resume"
+    )

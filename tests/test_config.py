@@ -1,0 +1,333 @@
+"""The config schema: every option composes and validates, bad values fail in one line that
+names them, a resume refuses a changed config, and algo/sac_paper is sac plus its changes."""
+
+import pytest
+import yaml
+from omegaconf import OmegaConf
+
+from rlplat.config import CONF_DIR, compose_config
+from rlplat.errors import ConfigError
+from rlplat.experiment.schema import (
+    COMPONENTS,
+    POLICIES,
+    RESUME_FREE,
+    TRAIN_RULES,
+    Num,
+    Opt,
+    check_resume,
+    config_diff,
+    knobs,
+    validate_evaluate_config,
+    validate_train_config,
+)
+from rlplat.scenarios import SPLITS
+
+GROUPS = ("scenario", "dynamics", "observation", "action", "reward", "algo", "drone", "logger")
+OPTIONS = [f"{g}={p.stem}" for g in GROUPS for p in sorted((CONF_DIR / g).glob("*.yaml"))]
+
+
+def train_error(*overrides: str) -> str:
+    with pytest.raises(ConfigError) as info:
+        validate_train_config(compose_config("train", overrides))
+    return str(info.value)
+
+
+def evaluate_error(*overrides: str) -> str:
+    with pytest.raises(ConfigError) as info:
+        validate_evaluate_config(compose_config("evaluate", overrides))
+    return str(info.value)
+
+
+# Every option composes and validates
+
+
+def test_every_group_has_options():
+    assert {o.split("=")[0] for o in OPTIONS} == set(GROUPS)
+    assert "algo=sac_paper" in OPTIONS and "drone=defender_v1" in OPTIONS
+
+
+@pytest.mark.parametrize("option", [None, *OPTIONS])
+def test_train_option_composes_and_validates(option):
+    validate_train_config(compose_config("train", [option] if option else []))
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        ["env.capture_radius=2"],  # an int where a float is expected
+        ["train.max_minutes=null", "train.threads=2", "env.attackers=1"],
+        ["algo.target_entropy=-3", "algo.gamma=0", "algo.action_margin=1"],
+        ["logger=wandb", "logger.mode=online", "logger.project=drones"],
+        ["drone=defender_v1", "algo=sac_paper", "algo.init_policy=random"],
+        ["scenario=pursuit_2v1", "env.attackers=2", "dynamics=quadrotor"],
+        ["scenarios_dir=/some/set", "env.attackers=3"],  # the set on disk is checked on load
+        ["~reward.distance_scale", "~dynamics.drag_z"],  # the class's default applies
+    ],
+    ids=lambda o: " ".join(o),
+)
+def test_train_valid_overrides(overrides):
+    validate_train_config(compose_config("train", overrides))
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        [],
+        *[[f"policy={p}"] for p in POLICIES],
+        *[[f"split={s}"] for s in SPLITS],
+        ["ckpt=last", "threads=1", "trajectories=0", "speed_ratio_bins=[1]", "attackers=1"],
+        ["compare=true", "device=cuda:0", "out_dir=null", "scenarios_dir=/some/set"],
+    ],
+    ids=lambda o: " ".join(o) or "default",
+)
+def test_evaluate_config_validates(overrides):
+    validate_evaluate_config(compose_config("evaluate", ["run_dir=runs/x", *overrides]))
+
+
+@pytest.mark.parametrize("group", sorted(COMPONENTS))
+def test_every_component_knob_has_a_rule(group):
+    registry, rules, factory_args = COMPONENTS[group]
+    for cls in registry.values():
+        assert set(knobs(cls, factory_args)) <= set(rules), cls.__name__
+
+
+# Bad values fail in one line naming the field and the value
+
+BAD_TRAIN = [
+    (["env.capture_radius=-1"], "env.capture_radius", "-1"),
+    (["algo.actor_lr=nan"], "algo.actor_lr", "nan"),
+    (["algo.critic_lr=inf"], "algo.critic_lr", "inf"),
+    (["reward.terms.capture=-inf"], "reward.terms.capture", "-inf"),
+    (["env.time_limit=0"], "env.time_limit", "0"),
+    (["env.ground_altitude=-0.5"], "env.ground_altitude", "-0.5"),
+    (["env.vision_semi_axes=[48,42]"], "env.vision_semi_axes", "[48, 42]"),
+    (["env.scenario_order=backwards"], "env.scenario_order", "'backwards'"),
+    (["env.compile_step=maybe"], "env.compile_step", "'maybe'"),
+    (["env.attackers=0"], "env.attackers", "0"),
+    (["env.attackers=2"], "env.attackers", "2"),  # the configured scenarios have 1
+    (["seed=-1"], "seed", "-1"),
+    (["seed=0.5"], "seed", "0.5"),
+    (["resume=yes"], "resume", "'yes'"),
+    (["scenarios_dir=''"], "scenarios_dir", "''"),
+    (["train.total_frames=1.5"], "train.total_frames", "1.5"),
+    (["train.total_frames=0"], "train.total_frames", "0"),
+    (["train.max_minutes=0"], "train.max_minutes", "0"),
+    (["train.eval_every_frames=abc"], "train.eval_every_frames", "'abc'"),
+    (["train.threads=0"], "train.threads", "0"),
+    (["train.device=gpu"], "train.device", "'gpu'"),
+    (["algo.batch_size=abc"], "algo.batch_size", "'abc'"),
+    (["algo.num_envs=true"], "algo.num_envs", "True"),
+    (["algo.gamma=1.0"], "algo.gamma", "1.0"),
+    (["algo.tau=0"], "algo.tau", "0"),
+    (["algo.n_steps=0"], "algo.n_steps", "0"),
+    (["algo.init_noise=-0.1"], "algo.init_noise", "-0.1"),
+    (["algo.action_margin=1.5"], "algo.action_margin", "1.5"),
+    (["algo.target_entropy=high"], "algo.target_entropy", "'high'"),
+    (["algo.actor_cells=[64,0]"], "algo.actor_cells", "[64, 0]"),
+    (["algo.critic_cells=[]"], "algo.critic_cells", "[]"),
+    (["algo.activation=gelu"], "algo.activation", "relu, tanh, elu"),
+    (["algo.loss_function=huber"], "algo.loss_function", "'huber'"),
+    (["algo.potential_key=speed"], "algo.potential_key", "'speed'"),
+    (["algo.init_policy=x"], "algo.init_policy", "unknown 'x'; valid: random, pure_pursuit"),
+    (["algo.init_policy=setpoint_follower"], "algo.init_policy", "'setpoint_follower'"),
+    (["drone=defender_v1", "algo.init_policy=pure_pursuit"], "algo.init_policy", "pure_pursuit"),
+    (["algo.frames_per_batch=100"], "algo.frames_per_batch", "100"),
+    (["algo.buffer_size=1000"], "algo.buffer_size", "1000"),
+    (["+algo.foo=1"], "algo.foo", "valid: name, num_envs"),
+    (["+train.foo=1"], "train.foo", "valid: total_frames"),
+    (["+env.foo=1"], "env.foo", "valid: control_period"),
+    (["+foo=1"], "foo", "unknown key"),
+    (["~algo.actor_lr"], "algo.actor_lr", "missing"),
+    (["drone.learner=pilot"], "drone.learner", "'pilot'"),
+    (["+logger.project=x"], "logger.project", "valid: backend"),  # csv has no project
+    (["logger=wandb", "logger.mode=disabled"], "logger.mode", "'disabled'"),
+    (["logger.backend=mlflow"], "logger.backend", "'mlflow'"),
+    (["dynamics.name=rocket"], "dynamics.name", "'rocket'"),
+    (["dynamics.tau_xy=0"], "dynamics.tau_xy", "0"),
+    (["dynamics.drag_z=-1"], "dynamics.drag_z", "-1"),
+    (["dynamics.physics_dt=0.5"], "dynamics.physics_dt", "0.5"),  # > env.control_period
+    (["+dynamics.max_tilt=0.5"], "dynamics.max_tilt", "valid: name, physics_dt"),
+    (["dynamics=quadrotor", "dynamics.max_tilt=2"], "dynamics.max_tilt", "2"),
+    (["dynamics=quadrotor", "dynamics.max_rotor_thrust=2"], "dynamics.max_rotor_thrust", "2"),
+    (["observation.position_scale=0"], "observation.position_scale", "0"),
+    (["observation.name=lidar"], "observation.name", "'lidar'"),
+    (["+action.gain=2"], "action.gain", "unknown key"),
+    (["reward.distance_scale=0"], "reward.distance_scale", "0"),
+    (["+reward.terms.bonus=1"], "reward.terms.bonus", "valid: capture"),
+    (["~reward.terms"], "reward.terms", "missing"),
+    (["reward.terms=null"], "reward.terms", "None"),
+    (["scenario.attackers=0"], "scenario.attackers", "0"),
+    (["scenario.n_train=-5"], "scenario.n_train", "-5"),
+]
+
+
+@pytest.mark.parametrize(
+    ("overrides", "field", "value"), BAD_TRAIN, ids=[" ".join(o) for o, _, _ in BAD_TRAIN]
+)
+def test_bad_train_value_fails_in_one_line(overrides, field, value):
+    message = train_error(*overrides)
+    assert message.startswith(f"{field}: ") and value in message
+    assert "\n" not in message
+
+
+def _numbers(rules):
+    return [k for k, r in rules.items() if isinstance(r.rule if isinstance(r, Opt) else r, Num)]
+
+
+NUMERIC = [[f"++{k}=nan"] for k in _numbers(TRAIN_RULES)]  # inf: see BAD_TRAIN
+for _group, (_registry, _rules, _args) in COMPONENTS.items():
+    for _name, _cls in _registry.items():
+        NUMERIC += [[f"{_group}={_name}", f"++{_group}.{k}=nan"] for k in knobs(_cls, _args)]
+
+
+@pytest.mark.parametrize("overrides", NUMERIC, ids=lambda o: " ".join(o))
+def test_every_number_refuses_nan(overrides):
+    field, value = overrides[-1].removeprefix("++").split("=")
+    message = train_error(*overrides)
+    assert message.startswith(f"{field}: ") and f"got {value}" in message
+
+
+BAD_EVALUATE = [
+    (["run_dir=r", "trajectories=-1"], "trajectories", "-1"),
+    (["run_dir=r", "trajectories=2.5"], "trajectories", "2.5"),
+    (["run_dir=r", "speed_ratio_bins=[1.0,0.5]"], "speed_ratio_bins", "[1.0, 0.5]"),
+    (["run_dir=r", "speed_ratio_bins=[]"], "speed_ratio_bins", "[]"),
+    (["run_dir=r", "speed_ratio_bins=[0,1]"], "speed_ratio_bins", "[0, 1]"),
+    (["run_dir=r", "speed_ratio_bins=[1,nan]"], "speed_ratio_bins", "nan"),
+    (["run_dir=r", "policy=magic"], "policy", "'magic'; valid: checkpoint, pure_pursuit"),
+    (["run_dir=r", "split=holdout"], "split", "'holdout'; valid: train, val, test"),
+    (["run_dir=r", "threads=0"], "threads", "0"),
+    (["run_dir=r", "device=gpu"], "device", "'gpu'"),
+    (["run_dir=r", "attackers=0"], "attackers", "0"),
+    (["run_dir=r", "plots=sometimes"], "plots", "'sometimes'"),
+    (["run_dir=r", "compare=true", "out_dir=x"], "out_dir", "'x'"),
+    (["run_dir=r", "policy=pure_pursuit", "ckpt=last"], "ckpt", "'last'"),
+    (["run_dir=r", "+foo=1"], "foo", "valid: run_dir, policy"),
+    ([], "run_dir", "???"),
+]
+
+
+@pytest.mark.parametrize(
+    ("overrides", "field", "value"), BAD_EVALUATE, ids=[" ".join(o) for o, _, _ in BAD_EVALUATE]
+)
+def test_bad_evaluate_value_fails_in_one_line(overrides, field, value):
+    message = evaluate_error(*overrides)
+    assert message.startswith(f"{field}: ") and value in message
+    assert "\n" not in message
+
+
+# Resume
+
+
+def resolved(*overrides: str) -> dict:
+    return OmegaConf.to_container(compose_config("train", overrides), resolve=True)
+
+
+def test_config_diff_lists_changed_added_and_removed_keys_sorted():
+    saved = {"env": {"capture_radius": 1.2, "gone": 1}, "algo": {"cells": [64, 64]}, "seed": 0}
+    current = {"env": {"capture_radius": 2.0, "new": {}}, "algo": {"cells": [64, 32]}, "seed": 0}
+    expected = ["algo.cells", "env.capture_radius", "env.gone", "env.new"]
+    assert config_diff(saved, current) == expected
+    assert config_diff(saved, saved) == []
+
+
+def test_config_diff_ignores_what_a_resume_may_change():
+    saved = resolved()
+    current = resolved(
+        "resume=true",
+        "train.total_frames=9000000",
+        "train.max_minutes=null",
+        "train.threads=1",
+        "train.progress=false",
+        "env.compile_step=true",
+        "algo.compile=false",
+        "logger=wandb",
+    )
+    assert config_diff(saved, current) == []
+    assert "train.total_frames" in config_diff(saved, current, ignore=())
+    assert "logger.project" in config_diff(saved, current, ignore=["resume"])
+    assert {"resume", "train.total_frames", "logger.*"} <= set(RESUME_FREE)
+
+
+def test_config_diff_sees_through_a_saved_config_yaml(tmp_path):
+    path = tmp_path / "config.yaml"  # as a run writes it
+    path.write_text(OmegaConf.to_yaml(resolved("seed=3")))
+    saved = OmegaConf.load(path)
+    assert config_diff(saved, resolved("seed=3", "resume=true")) == []
+    assert config_diff(saved, compose_config("train", ["seed=4"])) == ["seed"]
+
+
+def test_check_resume_accepts_a_longer_budget():
+    check_resume(resolved(), resolved("resume=true", "train.total_frames=4000000"))
+
+
+def test_check_resume_refuses_a_changed_config_in_one_line():
+    saved = resolved()
+    current = resolved("resume=true", "env.capture_radius=2.0", "reward.terms.capture=5.0")
+    with pytest.raises(ConfigError) as info:
+        check_resume(saved, current)
+    message = str(info.value)
+    assert message.startswith("resume: the config differs from the run's config.yaml in ")
+    assert "env.capture_radius (1.2 -> 2.0), reward.terms.capture (10.0 -> 5.0);" in message
+    assert "only resume, train.total_frames, train.max_minutes" in message
+    assert "\n" not in message
+
+
+def test_check_resume_names_added_and_removed_keys():
+    saved = resolved()
+    current = resolved("+reward.terms.proximity=-1.0", "~reward.terms.in_view_step")
+    with pytest.raises(ConfigError, match=r"proximity \(absent -> -1.0\)"):
+        check_resume(saved, current)
+    with pytest.raises(ConfigError, match=r"in_view_step \(-0.1 -> absent\)"):
+        check_resume(saved, current)
+
+
+# algo/sac_paper: sac plus what the paper changes
+
+#: What algo/sac_paper.yaml states: its differences from algo/sac.yaml.
+SAC_PAPER_CHANGES = {
+    "name": "sac_paper",
+    "num_envs": 1,
+    "frames_per_batch": 1,
+    "init_random_frames": 100,
+    "init_policy": "random",
+    "utd_ratio": 1.0,
+    "batch_size": 128,
+    "n_steps": 1,
+    "potential_weight": 0.0,
+    "actor_lr": 1.0e-3,
+    "alpha_init": 1.0,
+    "action_margin": 0.0,
+    "compile": False,
+}
+#: What it keeps of algo/sac.yaml (Stable-Baselines3's values too).
+SAC_PAPER_KEPT = {
+    "init_noise": 0.3,
+    "buffer_size": 1000000,
+    "gamma": 0.99,
+    "potential_key": "distance",
+    "tau": 0.005,
+    "critic_lr": 1.0e-3,
+    "alpha_lr": 1.0e-3,
+    "target_entropy": "auto",
+    "loss_function": "l2",
+    "actor_cells": [64, 64],
+    "critic_cells": [64, 64],
+    "activation": "relu",
+}
+
+
+def test_sac_paper_is_sac_plus_its_changes():
+    sac = resolved("algo=sac")["algo"]
+    paper = resolved("algo=sac_paper")["algo"]
+    assert paper == {**SAC_PAPER_CHANGES, **SAC_PAPER_KEPT}
+    assert list(paper) == list(sac)  # same key order as before: composed from sac
+    assert {k for k in sac if sac[k] != paper[k]} == set(SAC_PAPER_CHANGES)
+    raw = yaml.safe_load((CONF_DIR / "algo" / "sac_paper.yaml").read_text())
+    assert raw.pop("defaults") == ["sac", "_self_"]
+    assert raw == SAC_PAPER_CHANGES  # states only what differs
+
+
+def test_a_drone_bundle_still_sets_sac_paper_values():
+    algo = resolved("algo=sac_paper", "drone=defender_v1")["algo"]
+    assert algo["init_policy"] == "setpoint_follower" and algo["num_envs"] == 1
