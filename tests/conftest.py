@@ -1,7 +1,7 @@
 import pytest
 from omegaconf import OmegaConf
 
-from rlplat.config import compose_config
+from rlplat.experiment.config import compose_config
 from rlplat.scenarios import ScenarioSpec
 
 

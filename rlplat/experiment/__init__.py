@@ -20,5 +20,5 @@ def __getattr__(name: str):
     if name in ("evaluate_run", "evaluate_from_config"):
         from rlplat.experiment import evaluation
 
-        return getattr(evaluate, name)
+        return getattr(evaluation, name)
     raise AttributeError(f"module 'rlplat.experiment' has no attribute {name!r}")

@@ -26,8 +26,8 @@ from rlplat.eval.compare import compare
 from rlplat.eval.episodes import EpisodeResults, evaluate
 from rlplat.eval.report import write_report
 from rlplat.eval.tables import episode_rows, summarize, write_csv
-from rlplat.experiment.config import checked_threads
 from rlplat.experiment.factory import build_env, resolve_scenarios
+from rlplat.experiment.schema import validate_evaluate_config
 from rlplat.io import atomic_write_text
 from rlplat.scenarios import SPLITS, ScenarioSet
 
@@ -220,6 +220,7 @@ def evaluate_from_config(cfg: DictConfig) -> list[str]:
     """What ``evaluate.py`` does with its config (conf/evaluate.yaml); returns the lines to
     print. With ``compare`` it also flies every baseline for the run's learner on the same
     split and writes ``eval/compare-<split>.md``."""
+    validate_evaluate_config(cfg)
     kwargs = {
         "ckpt": str(cfg.ckpt),
         "split": cfg.split,
@@ -231,13 +232,10 @@ def evaluate_from_config(cfg: DictConfig) -> list[str]:
         "speed_ratio_bins": list(cfg.speed_ratio_bins),
         "plots": bool(cfg.plots),
     }
-    threads = checked_threads(cfg.threads, "threads")
-    if threads is not None:
-        torch.set_num_threads(threads)
+    if cfg.threads is not None:
+        torch.set_num_threads(cfg.threads)
     policies = [cfg.policy]
     if cfg.compare:
-        if cfg.out_dir is not None:
-            raise ConfigError("out_dir: must be null with compare=true (each policy has its own)")
         learner = load_run_config(cfg.run_dir).drone.learner
         policies += [k for k in policies_for(learner) if k != cfg.policy]
     lines = []

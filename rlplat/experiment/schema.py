@@ -26,11 +26,13 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from rlplat.agents.policies import POLICIES as SCRIPTED
+from rlplat.agents.sac import ACTIVATIONS
 from rlplat.envs.components import ACTIONS, OBSERVATIONS, REWARD_TERMS
 from rlplat.envs.dynamics import DYNAMICS
 from rlplat.envs.pursuit import ORDERS, ROLES
 from rlplat.errors import ConfigError
-from rlplat.eval.baselines import BASELINES
+from rlplat.experiment.logger import BACKENDS
 from rlplat.experiment.rules import (
     COUNT,
     FINITE,
@@ -76,27 +78,15 @@ def reward_terms(value: Any) -> str | None:
 
 
 #: Who may fly ``algo.init_random_frames``: uniform actions, or a baseline of the learner's role.
-INIT_POLICIES = ("random", *BASELINES)
+INIT_POLICIES = ("random", *SCRIPTED)
 #: ``evaluate.py policy=`` choices: the run's checkpoint, or a baseline.
-POLICIES = ("checkpoint", *BASELINES)
+POLICIES = ("checkpoint", *SCRIPTED)
 #: Env outputs a learner's potential-based shaping may read (``algo.potential_key``).
 POTENTIAL_KEYS = ("distance",)
 #: torchrl's critic regression losses.
 LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")
 #: wandb modes that ``logger.mode`` may set (others are read from ``WANDB_MODE``).
 WANDB_MODES = ("offline", "online")
-
-
-def _activations() -> Iterable[str]:
-    from rlplat.agents.sac import ACTIVATIONS  # rlplat.agents runs its training loop on import
-
-    return ACTIVATIONS
-
-
-def _backends() -> Iterable[str]:
-    from rlplat.agents.metrics import BACKENDS
-
-    return BACKENDS
 
 
 # Tables -----------------------------------------------------------------------------------
@@ -151,12 +141,12 @@ TRAIN_RULES: dict[str, Rule] = {
     "algo.loss_function": Choice(LOSS_FUNCTIONS),
     "algo.actor_cells": Seq(COUNT),
     "algo.critic_cells": Seq(COUNT),
-    "algo.activation": Choice(_activations),
+    "algo.activation": Choice(ACTIVATIONS),
     "algo.action_margin": Num(ge=0, le=1),
     "algo.compile": flag,
     "drone.name": Text(),
     "drone.learner": Choice(ROLES),
-    "logger.backend": Choice(_backends),
+    "logger.backend": Choice(BACKENDS),
 }
 
 #: Keys of the ``logger`` node besides ``backend``, per backend.
@@ -265,13 +255,13 @@ def _check_train_fields(c: Mapping[str, Any]) -> None:
             f"algo.frames_per_batch: {algo['frames_per_batch']} is not a multiple of "
             f"algo.num_envs={algo['num_envs']}"
         )
-    valid = [k for k in INIT_POLICIES if k == "random" or BASELINES[k].role == learner]
+    valid = [k for k in INIT_POLICIES if k == "random" or SCRIPTED[k].role == learner]
     policy = algo["init_policy"]
     if policy not in INIT_POLICIES:
         raise ConfigError(f"algo.init_policy: unknown {show(policy)}; valid: {', '.join(valid)}")
     if policy not in valid:
         raise ConfigError(
-            f"algo.init_policy: {show(policy)} flies the {BASELINES[policy].role}, "
+            f"algo.init_policy: {show(policy)} flies the {SCRIPTED[policy].role}, "
             f"drone.learner is the {learner}; valid: {', '.join(valid)}"
         )
     first_update = max(algo["batch_size"], algo["init_random_frames"] * _learning_drones(c))

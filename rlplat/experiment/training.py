@@ -41,7 +41,7 @@ from rlplat.eval.episodes import SCORE_NAME, EpisodeResults, evaluate
 from rlplat.eval.plots import plot_learning_curve
 from rlplat.experiment.factory import build_env, resolve_scenarios
 from rlplat.experiment.logger import Metrics, make_logger
-from rlplat.experiment.schema import check_resume, validate_train_config  # noqa: F401
+from rlplat.experiment.schema import check_resume, validate_train_config
 from rlplat.io import atomic_write_text
 from rlplat.scenarios import ScenarioSet
 
