@@ -235,11 +235,10 @@ def make_run_dir(run_dir: str | Path | None) -> Path:
 
 
 def load_resume_state(run_dir: Path, config: dict[str, Any]) -> dict[str, Any]:
-    """The run's ``last.pt``, after checking that this config is the run's own (only the
-    budget may change on a resume)."""
+    """The run's ``last.pt``, after checking that this config is the one it was trained with
+    (only the budget and speed settings may change on a resume, see ``check_resume``)."""
     state = load_checkpoint(run_dir / "checkpoints" / "last.pt")
-    saved = run_dir / "config.yaml"
-    check_resume(OmegaConf.to_container(OmegaConf.load(saved)) if saved.is_file() else {}, config)
+    check_resume(state["config"], config)
     return state
 
 

@@ -1,0 +1,89 @@
+"""Scripted policies: TensorDictModules that read only the env's output keys."""
+
+import pytest
+import torch
+
+from rlplat import make_env
+from rlplat.agents.policies import (
+    POLICIES,
+    REFERENCE,
+    ProportionalNavigation,
+    PurePursuit,
+    SetpointFollower,
+    make_scripted_policy,
+    policies_for,
+)
+from rlplat.errors import ConfigError
+
+DRONE = {"attacker": "drone=attacker_v3", "defender": "drone=defender_v1"}
+
+
+@pytest.mark.parametrize("name", sorted(POLICIES))
+def test_reads_only_its_keys_of_the_env_output(scenarios, name):
+    role = POLICIES[name].role
+    env = make_env(DRONE[role], scenarios=scenarios, num_envs=6)
+    policy = make_scripted_policy(name, env)
+    td = env.reset()
+    for _ in range(5):  # move away from the start so that velocities are not all zero
+        td = env.step(policy(td))["next"]
+    keys = list(policy.in_keys)
+    assert set(keys) <= set(env.observation_spec.keys())
+    alone = policy(td.select(*keys))[env.action_key]  # nothing but its keys
+    full = policy(td.clone())[env.action_key]
+    torch.testing.assert_close(alone, full, rtol=0, atol=0)
+    assert env.full_action_spec[env.action_key].is_in(alone)
+    assert alone.abs().amax() > 0  # it flies
+
+
+def test_pure_pursuit_is_gain_times_separation_saturated():
+    policy = PurePursuit(gain=1.0, learner="attacker", attackers=1, defenders=1, team=False)
+    positions = torch.tensor([[[0.0, 0.0, 10.0], [10.0, -0.5, 10.2]]])  # attacker, defender
+    max_speed = torch.tensor([[2.0, 1.0]])
+    action = policy(positions, max_speed, torch.zeros(1, 1, dtype=torch.bool))
+    # per axis: clamp(gain * d / v_max): x saturates, y and z do not
+    torch.testing.assert_close(action, torch.tensor([[1.0, -0.25, 0.1]]))
+
+
+def test_proportional_navigation_leads_a_crossing_target():
+    drones = dict(learner="attacker", attackers=1, defenders=1, team=False)
+    pn = ProportionalNavigation(gain=1.0, lead=1.0, max_lead_time=4.0, **drones)
+    pursuit = PurePursuit(gain=1.0, **drones)
+    positions = torch.tensor([[[0.0, 0.0, 10.0], [1.0, 0.0, 10.0]]])
+    velocities = torch.tensor([[[0.0, 0.0, 0.0], [0.0, 1.0, 0.0]]])  # defender flies +y
+    max_speed = torch.tensor([[4.0, 1.0]])
+    caught = torch.zeros(1, 1, dtype=torch.bool)
+    lead = pn(positions, velocities, max_speed, caught)
+    assert pursuit(positions, max_speed, caught)[0, 1] == 0  # pure pursuit: at it
+    assert lead[0, 1] > 0  # PN: ahead of it, in +y
+    still = pn(positions, torch.zeros_like(velocities), max_speed, caught)
+    torch.testing.assert_close(still, pursuit(positions, max_speed, caught))
+
+
+def test_setpoint_follower_holds_once_the_route_is_flown():
+    policy = SetpointFollower(gain=1.0, learner="defender", attackers=1, defenders=1, team=False)
+    positions = torch.tensor([[[50.0, 0.0, 10.0], [0.0, 0.0, 10.0]]])
+    max_speed = torch.tensor([[3.0, 2.0]])
+    setpoints = torch.tensor([[[1.0, -4.0, 10.0]]])
+    flying = policy(positions, max_speed, setpoints, torch.tensor([[False]]))
+    torch.testing.assert_close(flying, torch.tensor([[0.5, -1.0, 0.0]]))
+    done = policy(positions, max_speed, setpoints, torch.tensor([[True]]))
+    torch.testing.assert_close(done, torch.zeros(1, 3))
+
+
+def test_a_team_flies_one_action_per_drone(tmp_path, write_small_set):
+    two = write_small_set(tmp_path / "2v1", "scenario.attackers=2")
+    env = make_env(scenarios=two, num_envs=3)
+    policy = make_scripted_policy("proportional_navigation", env)
+    td = policy(env.reset())
+    assert env.action_key == ("attacker", "action")
+    assert td[env.action_key].shape == (3, 2, 3)
+
+
+def test_registry_errors_name_the_valid_choices(scenarios):
+    env = make_env(scenarios=scenarios, num_envs=2)
+    with pytest.raises(ConfigError, match="unknown baseline 'zigzag'; valid: pure_pursuit"):
+        make_scripted_policy("zigzag", env)
+    with pytest.raises(ConfigError, match="flies the defender.*valid: pure_pursuit, prop"):
+        make_scripted_policy("setpoint_follower", env)
+    assert policies_for("defender") == ["setpoint_follower"]
+    assert all(POLICIES[REFERENCE[role]].role == role for role in REFERENCE)
