@@ -5,7 +5,6 @@ from tensordict import TensorDict
 from rlplat.agents.transitions import n_step_transitions, shape_rewards
 from rlplat.eval.baselines import PurePursuitPolicy
 from rlplat.eval.episodes import evaluate
-from tests.test_env import scenarios  # noqa: F401  (module-scoped fixture)
 
 
 def trajectory(done_at=(2,), T=6):
@@ -62,7 +61,7 @@ def test_one_step_is_the_identity():
     assert n_step_transitions(batch, n=1, gamma=0.99) is batch
 
 
-def test_pure_pursuit_reference_captures_and_a_hover_does_not(scenarios):  # noqa: F811
+def test_pure_pursuit_reference_captures_and_a_hover_does_not(scenarios):
     from rlplat.config import compose_config
     from rlplat.envs.factory import build_env
 
@@ -80,7 +79,7 @@ def test_pure_pursuit_reference_captures_and_a_hover_does_not(scenarios):  # noq
 
 
 @pytest.mark.slow
-def test_compiled_update_matches_eager(scenarios):  # noqa: F811
+def test_compiled_update_matches_eager(scenarios):
     import torch._inductor.config
 
     from rlplat.agents.sac import SACAgent, net_spec

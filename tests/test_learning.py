@@ -8,26 +8,13 @@ from rlplat.agents import train
 from rlplat.config import compose_config
 from rlplat.scenarios import ScenarioSet, ScenarioSpec, write_scenario_set
 
-# A slow defender, a fast attacker starting within 15 m, episodes of 20 s.
-EASY = (
-    "scenario.n_train=512",
-    "scenario.n_val=64",
-    "scenario.n_test=64",
-    "scenario.params.defender_max_speed.high=1.5",
-    "scenario.params.attacker_max_speed.low=4",
-    "scenario.params.attacker_dx.low=-15",
-    "scenario.params.attacker_dx.high=15",
-    "scenario.params.attacker_dy.low=-15",
-    "scenario.params.attacker_dy.high=15",
-    "scenario.params.attacker_dz.low=-5",
-    "scenario.params.attacker_dz.high=5",
-)
 THRESHOLD = 0.6  # validation capture rate the default SAC must pass
 
 
 @pytest.mark.slow
-def test_default_sac_learns_an_easy_pursuit(tmp_path):
-    spec_cfg = compose_config("scenarios", ["out_dir=unused", *EASY])
+def test_default_sac_learns_an_easy_pursuit(easy_pursuit, tmp_path):
+    # The easy pursuit (a slow defender, a fast attacker starting within 15 m), episodes of 20 s.
+    spec_cfg = compose_config("scenarios", ["out_dir=unused", *easy_pursuit])
     write_scenario_set(ScenarioSpec.from_dict(OmegaConf.to_container(spec_cfg.scenario)), tmp_path)
     cfg = compose_config(
         "train",
