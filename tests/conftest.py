@@ -1,4 +1,10 @@
-"""Fixtures shared by the test modules."""
+"""Fixtures shared by the test modules, and the suite's machine options.
+
+``--torch-threads N`` runs the suite, and every command-line tool it starts in a subprocess,
+with N torch CPU threads. Which CPU kernels torch picks is set before torch is imported, by the
+environment variable ``ATEN_CPU_CAPABILITY`` (e.g. ``avx2`` or ``default``), which the
+subprocesses inherit as they are.
+"""
 
 import os
 import subprocess
@@ -6,6 +12,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 from omegaconf import OmegaConf
 
 from rlplat.config import compose_config
@@ -47,6 +54,40 @@ EASY = (
     "scenario.params.attacker_dz.low=-5",
     "scenario.params.attacker_dz.high=5",
 )
+
+
+# Machine options ---------------------------------------------------------------------------
+
+
+def pytest_addoption(parser):
+    parser.addoption(
+        "--torch-threads",
+        type=int,
+        default=None,
+        metavar="N",
+        help="torch CPU threads for the tests and the command-line tools they start "
+        "(default: torch's own default)",
+    )
+
+
+def pytest_configure(config):
+    threads = config.getoption("--torch-threads")
+    if threads is None:
+        return
+    if threads < 1:
+        raise pytest.UsageError(f"--torch-threads: must be a positive integer, got {threads}")
+    torch.set_num_threads(threads)
+    # torch reads OMP_NUM_THREADS when it starts: the subprocesses (train.py, evaluate.py,
+    # python -m rlplat...) inherit the environment and start with the same thread count.
+    os.environ["OMP_NUM_THREADS"] = str(threads)
+
+
+def pytest_report_header(config):
+    return (
+        f"torch {torch.__version__}: {torch.get_num_threads()} CPU threads, "
+        f"CPU capability {torch.backends.cpu.get_cpu_capability()} "
+        f"(ATEN_CPU_CAPABILITY={os.environ.get('ATEN_CPU_CAPABILITY', 'unset')})"
+    )
 
 
 # Scenarios ---------------------------------------------------------------------------------
@@ -132,7 +173,7 @@ def _run_python(*args: str, timeout: float = 300) -> subprocess.CompletedProcess
 @pytest.fixture(scope="session")
 def run_python():
     """run_python(*args, timeout=300): ``python *args`` in the repository root, output captured;
-    it inherits the environment."""
+    it inherits the environment (thread count, CPU capability)."""
     return _run_python
 
 

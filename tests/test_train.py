@@ -207,3 +207,10 @@ def test_threads_option_sets_torchs_thread_count(scenarios, tmp_path, tiny_run):
         assert torch.get_num_threads() == want
     finally:
         torch.set_num_threads(before)
+
+
+def test_command_line_tools_run_with_the_suites_thread_count(run_python):
+    # What `pytest --torch-threads N` sets, the train.py / evaluate.py subprocesses use too.
+    res = run_python("-c", "import torch; print(torch.get_num_threads())")
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert int(res.stdout) == torch.get_num_threads()
