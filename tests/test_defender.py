@@ -136,10 +136,21 @@ def test_shipped_defender_is_what_its_card_says():
     assert env.scenario_set.digest == card["scenario_digest"]
     nn = evaluate(env, actor_from_state(state, env.action_spec[0]))
     follower = evaluate(env, SetpointFollowerPolicy(env))
+    # The card was written on another machine. The network's closed loop grows rounding
+    # differences (the kernels torch picks for the CPU's instruction set, reduction order) into
+    # different episodes: between torch's avx2 and default kernels on one machine, 10 of these
+    # 500 episodes change outcome (14 their evasion), net 2 captures, while the scripted
+    # follower's closest approaches agree within 1e-4 m and none change. Allow k = 15 episodes
+    # to change, all the same way: each moves a rate, and the evasion score (an episode's
+    # evasion is in [0, 1]), by at most 1/500.
+    tolerance = 15 / 500
     for name, res in (("nn", nn), ("setpoint_follower", follower)):
-        assert card["test"][name]["capture_rate"] == pytest.approx(res.capture_rate)
-        assert card["test"][name]["evasion_score"] == pytest.approx(res.evasion_score, abs=1e-6)
+        card_test = card["test"][name]
+        assert card_test["capture_rate"] == pytest.approx(res.capture_rate, abs=tolerance)
+        assert card_test["evasion_score"] == pytest.approx(res.evasion_score, abs=tolerance)
     assert nn.capture_rate < follower.capture_rate
+    # Both measured here; the margin (0.0104, 94 setpoints of 9000) is 20x the change of the
+    # network's mean between kernel sets (0.0004).
     assert nn.route_fraction.mean() >= follower.route_fraction.mean()
 
 
