@@ -72,6 +72,8 @@ def test_pure_pursuit_reference_captures_and_a_hover_does_not(scenarios):
     )  # fmt: skip
     pursuit = evaluate(env, PurePursuitPolicy(env))
     hover = evaluate(env, lambda td: td.set("action", torch.zeros(env.action_spec.shape)))
+    # 13 of the 16 with torch's avx2 kernels, 12 with its default ones (the network-flown
+    # defenders' episodes differ); the bar of 9 lets 3 more change on another machine.
     assert pursuit.capture_rate > 0.5
     assert hover.capture_rate < pursuit.capture_rate
     assert not pursuit.grounded.any()
