@@ -1,8 +1,96 @@
+"""Fixtures shared by the test modules, and the suite's machine options.
+
+``--torch-threads N`` runs the suite, and every command-line tool it starts in a subprocess,
+with N torch CPU threads. Which CPU kernels torch picks is set before torch is imported, by the
+environment variable ``ATEN_CPU_CAPABILITY`` (e.g. ``avx2`` or ``default``), which the
+subprocesses inherit as they are.
+"""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
+import torch
 from omegaconf import OmegaConf
 
 from rlplat.experiment.config import compose_config
-from rlplat.scenarios import ScenarioSpec
+from rlplat.scenarios import ScenarioSet, ScenarioSpec, write_scenario_set
+
+ROOT = Path(__file__).resolve().parent.parent
+
+# The small scenario set most tests fly.
+SIZES = ("scenario.n_train=64", "scenario.n_val=16", "scenario.n_test=16")
+
+# A training run of a few seconds: small batches, short episodes, validation twice.
+TINY = (
+    "algo.num_envs=4",
+    "algo.frames_per_batch=64",
+    "algo.init_random_frames=64",
+    "algo.batch_size=32",
+    "algo.utd_ratio=0.1",
+    "algo.actor_cells=[32,32]",
+    "algo.critic_cells=[32,32]",
+    "algo.compile=false",
+    "train.total_frames=256",
+    "train.eval_every_frames=128",
+    "train.progress=false",
+    "env.time_limit=3",
+)
+
+# An easy pursuit for the learning tests: a slow defender, a fast attacker starting within
+# 15 m (episodes of 20 s are set by the tests).
+EASY = (
+    "scenario.n_train=512",
+    "scenario.n_val=64",
+    "scenario.n_test=64",
+    "scenario.params.defender_max_speed.high=1.5",
+    "scenario.params.attacker_max_speed.low=4",
+    "scenario.params.attacker_dx.low=-15",
+    "scenario.params.attacker_dx.high=15",
+    "scenario.params.attacker_dy.low=-15",
+    "scenario.params.attacker_dy.high=15",
+    "scenario.params.attacker_dz.low=-5",
+    "scenario.params.attacker_dz.high=5",
+)
+
+
+# Machine options ---------------------------------------------------------------------------
+
+
+def pytest_addoption(parser):
+    parser.addoption(
+        "--torch-threads",
+        type=int,
+        default=None,
+        metavar="N",
+        help="torch CPU threads for the tests and the command-line tools they start "
+        "(default: torch's own default)",
+    )
+
+
+def pytest_configure(config):
+    threads = config.getoption("--torch-threads")
+    if threads is None:
+        return
+    if threads < 1:
+        raise pytest.UsageError(f"--torch-threads: must be a positive integer, got {threads}")
+    torch.set_num_threads(threads)
+    # torch reads OMP_NUM_THREADS when it starts: the subprocesses (train.py, evaluate.py,
+    # python -m rlplat...) inherit the environment and start with the same thread count.
+    os.environ["OMP_NUM_THREADS"] = str(threads)
+
+
+def pytest_report_header(config):
+    return (
+        f"torch {torch.__version__}: {torch.get_num_threads()} CPU threads, "
+        f"CPU capability {torch.backends.cpu.get_cpu_capability()} "
+        f"(ATEN_CPU_CAPABILITY={os.environ.get('ATEN_CPU_CAPABILITY', 'unset')})"
+    )
+
+
+# Scenarios ---------------------------------------------------------------------------------
 
 
 def spec_from(*overrides: str) -> ScenarioSpec:
@@ -11,6 +99,89 @@ def spec_from(*overrides: str) -> ScenarioSpec:
     return ScenarioSpec.from_dict(OmegaConf.to_container(cfg.scenario, resolve=True))
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def make_spec():
+    """make_spec(*overrides) -> ScenarioSpec, composed from conf/scenarios.yaml."""
     return spec_from
+
+
+@pytest.fixture(scope="session")
+def small_sizes() -> tuple[str, ...]:
+    """The split sizes of the small sets: 64 train, 16 val, 16 test scenarios."""
+    return SIZES
+
+
+@pytest.fixture(scope="session")
+def write_small_set():
+    """write_small_set(path, *overrides) -> ScenarioSet: a small set with ``overrides``,
+    written to ``path`` and loaded back."""
+
+    def write(path: Path, *overrides: str) -> ScenarioSet:
+        write_scenario_set(spec_from(*SIZES, *overrides), path)
+        return ScenarioSet.load(path)
+
+    return write
+
+
+@pytest.fixture(scope="module")
+def scenarios(tmp_path_factory, write_small_set) -> ScenarioSet:
+    """The default small set, written once per module."""
+    return write_small_set(tmp_path_factory.mktemp("scenarios"))
+
+
+@pytest.fixture(scope="session")
+def easy_pursuit() -> tuple[str, ...]:
+    """Scenario overrides of an easy pursuit (see EASY)."""
+    return EASY
+
+
+# Training ----------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="session")
+def tiny() -> tuple[str, ...]:
+    """The train.py overrides of a run of a few seconds."""
+    return TINY
+
+
+@pytest.fixture(scope="session")
+def tiny_run():
+    """tiny_run(scenarios, run_dir, *overrides) -> summary: a run of a few seconds, in-process."""
+    from rlplat.agents import train
+
+    def run(scenarios: ScenarioSet, run_dir: Path, *overrides: str) -> dict:
+        cfg = compose_config("train", [*TINY, f"scenarios_dir={scenarios.path}", *overrides])
+        return train(cfg, run_dir=run_dir)
+
+    return run
+
+
+# Command-line tools ------------------------------------------------------------------------
+
+
+def _run_python(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, *args],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        env={**os.environ},
+        timeout=timeout,
+    )
+
+
+@pytest.fixture(scope="session")
+def run_python():
+    """run_python(*args, timeout=300): ``python *args`` in the repository root, output captured;
+    it inherits the environment (thread count, CPU capability)."""
+    return _run_python
+
+
+@pytest.fixture(scope="session")
+def train_cli():
+    """train_cli(*overrides, timeout=300): ``python train.py *overrides``, as run_python."""
+
+    def cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+        return _run_python(str(ROOT / "train.py"), *args, timeout=timeout)
+
+    return cli

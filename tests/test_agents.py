@@ -5,7 +5,6 @@ from tensordict import TensorDict
 from rlplat.agents.transitions import n_step_transitions, shape_rewards
 from rlplat.eval.baselines import PurePursuitPolicy
 from rlplat.eval.episodes import evaluate
-from tests.test_env import scenarios  # noqa: F401  (module-scoped fixture)
 
 
 def trajectory(done_at=(2,), T=6):
@@ -62,7 +61,7 @@ def test_one_step_is_the_identity():
     assert n_step_transitions(batch, n=1, gamma=0.99) is batch
 
 
-def test_pure_pursuit_reference_captures_and_a_hover_does_not(scenarios):  # noqa: F811
+def test_pure_pursuit_reference_captures_and_a_hover_does_not(scenarios):
     from rlplat.config import compose_config
     from rlplat.envs.factory import build_env
 
@@ -73,6 +72,8 @@ def test_pure_pursuit_reference_captures_and_a_hover_does_not(scenarios):  # noq
     )  # fmt: skip
     pursuit = evaluate(env, PurePursuitPolicy(env))
     hover = evaluate(env, lambda td: td.set("action", torch.zeros(env.action_spec.shape)))
+    # 13 of the 16 with torch's avx2 kernels, 12 with its default ones (the network-flown
+    # defenders' episodes differ); the bar of 9 lets 3 more change on another machine.
     assert pursuit.capture_rate > 0.5
     assert hover.capture_rate < pursuit.capture_rate
     assert not pursuit.grounded.any()
@@ -80,7 +81,7 @@ def test_pure_pursuit_reference_captures_and_a_hover_does_not(scenarios):  # noq
 
 
 @pytest.mark.slow
-def test_compiled_update_matches_eager(scenarios):  # noqa: F811
+def test_compiled_update_matches_eager(scenarios):
     import torch._inductor.config
 
     from rlplat.agents.sac import SACAgent, net_spec

@@ -6,7 +6,6 @@ import pytest
 from omegaconf import OmegaConf
 
 from rlplat.errors import ConfigError
-from tests.test_eval import run_cli
 
 
 def fake_sweep(root: Path, scores: dict[str, list[tuple[int, float, float]]]) -> None:
@@ -25,7 +24,7 @@ def fake_sweep(root: Path, scores: dict[str, list[tuple[int, float, float]]]) ->
             job += 1
 
 
-def test_cli_aggregates_seeds_per_configuration(tmp_path):
+def test_cli_aggregates_seeds_per_configuration(tmp_path, run_python):
     fake_sweep(
         tmp_path,
         {
@@ -35,7 +34,7 @@ def test_cli_aggregates_seeds_per_configuration(tmp_path):
     )
     (tmp_path / "0" / "eval" / "test-best").mkdir(parents=True)  # evaluations are not runs
     (tmp_path / "0" / "eval" / "test-best" / "summary.json").write_text("{}")
-    res = run_cli("-m", "rlplat.eval.aggregate", str(tmp_path), "--reps", "500")
+    res = run_python("-m", "rlplat.eval.aggregate", str(tmp_path), "--reps", "500")
     assert res.returncode == 0, res.stderr[-2000:]
     summary = json.loads((tmp_path / "aggregate" / "summary.json").read_text())
     assert summary["common_overrides"] == ["train.max_minutes=1"]  # not a variant's name

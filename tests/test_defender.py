@@ -19,19 +19,17 @@ from rlplat.agents.controller import (
     shipped_path,
     write_card,
 )
+from rlplat.config import CONF_DIR
 from rlplat.envs.components import OBSERVATIONS, DroneView, Reward, RewardContext
 from rlplat.errors import ConfigError
 from rlplat.eval.baselines import SetpointFollowerPolicy
 from rlplat.eval.episodes import evaluate
 from rlplat.eval.run import evaluate_run
-from rlplat.scenarios import STRATEGIES, ScenarioSet, write_scenario_set
-from tests.conftest import spec_from
-from tests.test_env import CONF, SIZES, scenarios  # noqa: F401  (module-scoped fixture)
-from tests.test_train import TINY, cli, tiny_run
+from rlplat.scenarios import STRATEGIES, ScenarioSet
 
 
 @pytest.fixture(scope="module")
-def defender_run(scenarios, tmp_path_factory):  # noqa: F811
+def defender_run(scenarios, tmp_path_factory, tiny_run):
     """A tiny defender_v1 run and its policy exported as a controller file."""
     run = tmp_path_factory.mktemp("defender_run")
     summary = tiny_run(scenarios, run, "drone=defender_v1")
@@ -41,11 +39,10 @@ def defender_run(scenarios, tmp_path_factory):  # noqa: F811
 
 
 @pytest.fixture(scope="module")
-def mixed(tmp_path_factory) -> ScenarioSet:
+def mixed(tmp_path_factory, write_small_set) -> ScenarioSet:
     """Scenarios with both defender strategies, about half each."""
     path = tmp_path_factory.mktemp("mixed")
-    write_scenario_set(spec_from(*SIZES, "scenario.strategy_mix={setpoints: 1, nn: 1}"), path)
-    return ScenarioSet.load(path)
+    return write_small_set(path, "scenario.strategy_mix={setpoints: 1, nn: 1}")
 
 
 def test_route_state_observation_and_evasion_reward():
@@ -59,7 +56,7 @@ def test_route_state_observation_and_evasion_reward():
     obs = OBSERVATIONS["route_state"]()(view)
     assert obs.tolist() == [[0.5, 0, 0, 0, 10, 0, 3, 0, 0, -0.5, 1, 0]]
 
-    cfg = OmegaConf.load(CONF / "reward" / "evasion.yaml")
+    cfg = OmegaConf.load(CONF_DIR / "reward" / "evasion.yaml")
     w = cfg.terms
     reward = Reward(**cfg)
     d = torch.tensor([30.0, 7.5, 1.0, 7.5])
@@ -83,7 +80,7 @@ def test_route_state_observation_and_evasion_reward():
     assert w.capture < 0 and w.proximity < 0 and w.route_progress > 0
 
 
-def test_defender_env_reports_route_progress(scenarios):  # noqa: F811
+def test_defender_env_reports_route_progress(scenarios):
     env = make_env("drone=defender_v1", scenarios=scenarios, num_envs=4)
     check_env_specs(env, seed=0)
     td = env.reset()
@@ -116,7 +113,7 @@ def test_controller_is_the_actors_deterministic_policy(defender_run):
     torch.testing.assert_close(controller(view), expected)
 
 
-def test_controller_of_the_wrong_drone_is_refused(defender_run, scenarios, tmp_path):  # noqa: F811
+def test_controller_of_the_wrong_drone_is_refused(defender_run, scenarios, tmp_path, tiny_run):
     attacker = tiny_run(scenarios, tmp_path)["run_dir"]
     with pytest.raises(
         ConfigError, match=r"env.defender_network: the checkpoint flies the attacker"
@@ -139,10 +136,21 @@ def test_shipped_defender_is_what_its_card_says():
     assert env.scenario_set.digest == card["scenario_digest"]
     nn = evaluate(env, actor_from_state(state, env.action_spec[0]))
     follower = evaluate(env, SetpointFollowerPolicy(env))
+    # The card was written on another machine. The network's closed loop grows rounding
+    # differences (the kernels torch picks for the CPU's instruction set, reduction order) into
+    # different episodes: between torch's avx2 and default kernels on one machine, 10 of these
+    # 500 episodes change outcome (14 their evasion), net 2 captures, while the scripted
+    # follower's closest approaches agree within 1e-4 m and none change. Allow k = 15 episodes
+    # to change, all the same way: each moves a rate, and the evasion score (an episode's
+    # evasion is in [0, 1]), by at most 1/500.
+    tolerance = 15 / 500
     for name, res in (("nn", nn), ("setpoint_follower", follower)):
-        assert card["test"][name]["capture_rate"] == pytest.approx(res.capture_rate)
-        assert card["test"][name]["evasion_score"] == pytest.approx(res.evasion_score, abs=1e-6)
+        card_test = card["test"][name]
+        assert card_test["capture_rate"] == pytest.approx(res.capture_rate, abs=tolerance)
+        assert card_test["evasion_score"] == pytest.approx(res.evasion_score, abs=tolerance)
     assert nn.capture_rate < follower.capture_rate
+    # Both measured here; the margin (0.0104, 94 setpoints of 9000) is 20x the change of the
+    # network's mean between kernel sets (0.0004).
     assert nn.route_fraction.mean() >= follower.route_fraction.mean()
 
 
@@ -176,13 +184,15 @@ def test_nn_defenders_fly_the_network(mixed, defender_run, tmp_path):
     check_env_specs(env, seed=0)
 
 
-def test_defender_trains_and_evaluates_through_the_cli(scenarios, defender_run, tmp_path):  # noqa: F811
+def test_defender_trains_and_evaluates_through_the_cli(
+    scenarios, defender_run, tmp_path, tiny, train_cli
+):
     run, summary = defender_run
     assert summary["val_score"] == "evasion_score"
     assert summary["reference_policy"] == "setpoint_follower"
     assert 0.0 <= summary["test_route_fraction"] <= 1.0
-    res = cli(
-        *TINY, "drone=defender_v1", f"scenarios_dir={scenarios.path}", f"hydra.run.dir={tmp_path}"
+    res = train_cli(
+        *tiny, "drone=defender_v1", f"scenarios_dir={scenarios.path}", f"hydra.run.dir={tmp_path}"
     )
     assert res.returncode == 0, res.stderr[-2000:]
     assert res.stdout.strip().splitlines()[-1].startswith("test evasion score ")

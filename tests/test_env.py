@@ -19,25 +19,12 @@ from rlplat.envs.components import (
 from rlplat.envs.controllers import follow_route
 from rlplat.envs.pursuit import PursuitEnv, _closest_approach
 from rlplat.errors import ConfigError
-from rlplat.scenarios import ScenarioSet, write_scenario_set
 
 CONF = Path(__file__).resolve().parent.parent / "conf"
-SIZES = ("scenario.n_train=64", "scenario.n_val=16", "scenario.n_test=16")
 
 
 def stems(group: str) -> set[str]:
     return {p.stem for p in (CONF / group).glob("*.yaml")}
-
-
-@pytest.fixture(scope="module")
-def scenarios(tmp_path_factory) -> ScenarioSet:
-    from rlplat.config import compose_config
-    from rlplat.scenarios import ScenarioSpec
-
-    cfg = compose_config("scenarios", ["out_dir=unused", *SIZES])
-    path = tmp_path_factory.mktemp("scenarios")
-    write_scenario_set(ScenarioSpec.from_dict(OmegaConf.to_container(cfg.scenario)), path)
-    return ScenarioSet.load(path)
 
 
 def _pursue(observation: torch.Tensor) -> torch.Tensor:
@@ -238,18 +225,15 @@ def test_same_seed_same_rollout(scenarios, order):
     [(0, (1, 1), 150, 1e-4), (1, (1, 1), 40, 1e-3), (0, (2, 2), 150, 1e-4)],
     ids=["setpoints", "with-nn-defenders", "2v2-setpoints"],
 )
-def test_compiled_step_flies_like_the_eager_one(tmp_path, nn_weight, team, steps, atol):
-    from tests.conftest import spec_from
-
+def test_compiled_step_flies_like_the_eager_one(
+    write_small_set, tmp_path, nn_weight, team, steps, atol
+):
     k, m = team
-    write_scenario_set(
-        spec_from(
-            *SIZES,
-            f"scenario.strategy_mix.nn={nn_weight}",
-            f"scenario.attackers={k}",
-            f"scenario.defenders={m}",
-        ),
+    write_small_set(
         tmp_path,
+        f"scenario.strategy_mix.nn={nn_weight}",
+        f"scenario.attackers={k}",
+        f"scenario.defenders={m}",
     )
 
     def run(compile_step):
@@ -300,13 +284,9 @@ def test_no_nan_in_long_random_rollouts(scenarios, dynamics):
     assert td["next", "done"].any()  # episodes ended and were reset along the way
 
 
-def test_defender_follows_its_route_to_the_end(tmp_path):
-    from tests.conftest import spec_from
-
+def test_defender_follows_its_route_to_the_end(write_small_set, tmp_path):
     route = "scenario.routes=[[[0,0,10],[0,6,10]]]"
-    write_scenario_set(
-        spec_from(*SIZES, route, "scenario.params.defender_max_speed.low=4"), tmp_path
-    )
+    write_small_set(tmp_path, route, "scenario.params.defender_max_speed.low=4")
     env = make_env(route, "env.time_limit=30", scenarios=tmp_path, num_envs=8)
     hover = TensorDictModule(lambda o: o[..., :3] * 0, in_keys=["observation"], out_keys=["action"])
     td = env.rollout(300, hover, break_when_any_done=False)
@@ -327,10 +307,8 @@ def test_follow_route_flies_to_its_target_and_holds_at_the_end():
     assert cmd.tolist() == [[0, 0, 0], [0, 0, 0], [-0.5, -0.5, -0.5]]
 
 
-def test_nn_defender_without_network_is_refused(tmp_path):
-    from tests.conftest import spec_from
-
-    write_scenario_set(spec_from(*SIZES, "scenario.strategy_mix.nn=1"), tmp_path)
+def test_nn_defender_without_network_is_refused(write_small_set, tmp_path):
+    write_small_set(tmp_path, "scenario.strategy_mix.nn=1")
     with pytest.raises(ConfigError, match=r"env.defender_network: checkpoint: no file at /no"):
         make_env("env.defender_network=/no/such.pt", scenarios=tmp_path)
     env = make_env(scenarios=tmp_path)  # the shipped network
@@ -351,16 +329,16 @@ def test_bad_env_option_is_refused(scenarios):
         make_env("dynamics.name=rocket", scenarios=scenarios)
 
 
-def test_default_scenarios_are_generated_once_into_the_cache(tmp_path, monkeypatch):
+def test_default_scenarios_are_generated_once_into_the_cache(small_sizes, tmp_path, monkeypatch):
     import rlplat.envs.factory as factory
 
     monkeypatch.setattr(factory, "CACHE_DIR", tmp_path)
-    env = make_env(*SIZES, num_envs=2)
+    env = make_env(*small_sizes, num_envs=2)
     (cached,) = (tmp_path / "scenarios").iterdir()
     assert (cached / "manifest.json").exists()
     assert len(env.scenarios) == 64
     mtime = (cached / "manifest.json").stat().st_mtime_ns
-    make_env(*SIZES)
+    make_env(*small_sizes)
     assert (cached / "manifest.json").stat().st_mtime_ns == mtime
 
 

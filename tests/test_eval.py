@@ -3,10 +3,7 @@ import inspect
 import json
 import logging
 import math
-import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -27,10 +24,7 @@ from rlplat.eval.baselines import (
 from rlplat.eval.episodes import evaluate
 from rlplat.eval.metrics import wilson_interval
 from rlplat.eval.run import episode_rows, summarize
-from rlplat.scenarios import ScenarioSet, write_scenario_set
-from tests.conftest import spec_from
-from tests.test_env import SIZES, scenarios  # noqa: F401  (module-scoped fixture)
-from tests.test_train import TINY
+from rlplat.scenarios import ScenarioSet
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -44,17 +38,6 @@ IDEAL = (
     "dynamics.drag_xy=0",
     "dynamics.drag_z=0",
 )
-
-
-def run_cli(*args, timeout=300):
-    return subprocess.run(
-        [sys.executable, *args],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-        env={**os.environ},
-        timeout=timeout,
-    )
 
 
 # Hand-made scenarios with a known outcome ----------------------------------------------
@@ -130,11 +113,10 @@ def test_hovering_defender_is_captured_at_the_computed_time(tmp_path):
     assert list(summary["by_speed_ratio"]) == ["1-2.5"]
 
 
-def test_setpoint_follower_flies_the_defender_like_the_scripted_one(tmp_path):
+def test_setpoint_follower_flies_the_defender_like_the_scripted_one(write_small_set, tmp_path):
     """Attacker learns + pure pursuit policy == defender learns + setpoint-follower policy:
     both fly pure pursuit against the route follower (on setpoint-strategy scenarios)."""
-    write_scenario_set(spec_from(*SIZES, "scenario.strategy_mix.nn=0"), tmp_path)
-    setpoint_only = ScenarioSet.load(tmp_path)
+    setpoint_only = write_small_set(tmp_path, "scenario.strategy_mix.nn=0")
 
     def fly(learner, policy):
         cfg = compose_config("train", [f"drone.learner={learner}", "env.time_limit=20"])
@@ -148,7 +130,7 @@ def test_setpoint_follower_flies_the_defender_like_the_scripted_one(tmp_path):
     assert torch.equal(a.length, d.length)
 
 
-def test_baseline_registry_errors(scenarios):  # noqa: F811
+def test_baseline_registry_errors(scenarios):
     cfg = compose_config("train", [])
     env = build_env(cfg, scenarios=scenarios, split="test", num_envs=16)
     with pytest.raises(ConfigError, match=r"policy: unknown baseline 'lqr'; valid: pure_pursuit"):
@@ -165,10 +147,10 @@ def test_baseline_registry_errors(scenarios):  # noqa: F811
 
 
 @pytest.fixture(scope="module")
-def trained_run(scenarios, tmp_path_factory):  # noqa: F811
+def trained_run(scenarios, tmp_path_factory, tiny, run_python):
     run = tmp_path_factory.mktemp("run")
-    res = run_cli(
-        "train.py", *TINY, "env.time_limit=20", f"scenarios_dir={scenarios.path}",
+    res = run_python(
+        "train.py", *tiny, "env.time_limit=20", f"scenarios_dir={scenarios.path}",
         f"hydra.run.dir={run}",
     )  # fmt: skip
     assert res.returncode == 0, res.stderr[-2000:]
@@ -181,10 +163,10 @@ def read_episodes(path: Path) -> list[dict[str, str]]:
 
 
 @pytest.mark.slow
-def test_cli_train_evaluate_compare_round_trip(trained_run, scenarios):  # noqa: F811
+def test_cli_train_evaluate_compare_round_trip(trained_run, scenarios, run_python):
     run = trained_run
     policies = "checkpoint,pure_pursuit,proportional_navigation"
-    res = run_cli("evaluate.py", "-m", f"run_dir={run}", f"policy={policies}")
+    res = run_python("evaluate.py", "-m", f"run_dir={run}", f"policy={policies}")
     assert res.returncode == 0, res.stderr[-2000:]
     trained = json.loads((run / "summary.json").read_text())
     for name in ("best", "pure_pursuit", "proportional_navigation"):
@@ -220,7 +202,7 @@ def test_cli_train_evaluate_compare_round_trip(trained_run, scenarios):  # noqa:
     assert best["capture_rate"] == pytest.approx(trained["test_capture_rate"])
     assert best["mean_return"] == pytest.approx(trained["test_mean_return"], rel=1e-5)
 
-    res = run_cli("-m", "rlplat.eval.compare", str(run))
+    res = run_python("-m", "rlplat.eval.compare", str(run))
     assert res.returncode == 0, res.stderr[-2000:]
     assert [line.split(" | ")[0] for line in res.stdout.splitlines()[2:]] == [
         "| attacker_v3 (best)",
@@ -306,9 +288,9 @@ def test_checkpoint_that_does_not_fit_the_drone_config(trained_run, tmp_path):
     assert not (run / "eval").exists()
 
 
-def test_another_scenario_set_warns_or_is_refused(trained_run, tmp_path, caplog):
+def test_another_scenario_set_warns_or_is_refused(trained_run, write_small_set, tmp_path, caplog):
     other = tmp_path / "other"
-    write_scenario_set(spec_from(*SIZES, "scenario.seed=5"), other)
+    write_small_set(other, "scenario.seed=5")
     with caplog.at_level(logging.WARNING, logger="rlplat.eval.run"):
         ev = evaluate_run(trained_run, split="val", scenarios_dir=other, out_dir=tmp_path / "w",
                           plots=False)  # fmt: skip
@@ -322,8 +304,8 @@ def test_another_scenario_set_warns_or_is_refused(trained_run, tmp_path, caplog)
     assert not (tmp_path / "s").exists()
 
 
-def test_cli_bad_input_is_one_line(tmp_path):
-    res = run_cli("evaluate.py", f"run_dir={tmp_path / 'nowhere'}")
+def test_cli_bad_input_is_one_line(tmp_path, run_python):
+    res = run_python("evaluate.py", f"run_dir={tmp_path / 'nowhere'}")
     assert res.returncode == 2
     assert (
         res.stderr.strip().splitlines()[-1]

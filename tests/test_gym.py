@@ -4,16 +4,15 @@ from gymnasium.utils.env_checker import check_env
 
 from rlplat import make_gym_env
 from rlplat.envs.gym import PursuitGymEnv
-from tests.test_env import scenarios  # noqa: F401  (module-scoped fixture)
 
 
-def test_passes_gymnasium_checker(scenarios):  # noqa: F811
+def test_passes_gymnasium_checker(scenarios):
     env = make_gym_env(scenarios=scenarios.path)
     check_env(env, skip_render_check=True)
     env.close()
 
 
-def test_paper_api_init_reset_step_close(scenarios):  # noqa: F811
+def test_paper_api_init_reset_step_close(scenarios):
     env = PursuitGymEnv(scenarios, "drone=attacker_v1", split="val")
     obs, info = env.reset(seed=0)
     assert obs.shape == (12,) and obs.dtype == np.float32
@@ -27,7 +26,7 @@ def test_paper_api_init_reset_step_close(scenarios):  # noqa: F811
 
 
 @pytest.mark.slow
-def test_stable_baselines3_sac_trains_unmodified(scenarios):  # noqa: F811
+def test_stable_baselines3_sac_trains_unmodified(scenarios):
     from stable_baselines3 import SAC
 
     env = make_gym_env("env.time_limit=5", scenarios=scenarios.path)

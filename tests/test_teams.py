@@ -14,20 +14,19 @@ from rlplat.errors import ConfigError
 from rlplat.eval.baselines import make_baseline
 from rlplat.eval.episodes import evaluate
 from rlplat.scenarios import ScenarioSet, write_scenario_set
-from tests.conftest import spec_from
 
 SIZES = ("scenario.n_train=32", "scenario.n_val=16", "scenario.n_test=16")
 TEAMS = list(itertools.product((1, 2), (1, 2)))
 
 
 @pytest.fixture(scope="module")
-def team_sets(tmp_path_factory) -> dict[tuple[int, int], ScenarioSet]:
+def team_sets(tmp_path_factory, make_spec) -> dict[tuple[int, int], ScenarioSet]:
     """A small scenario set per (attackers, defenders) in {1, 2}^2."""
     sets = {}
     for k, m in TEAMS:
         path = tmp_path_factory.mktemp(f"teams_{k}v{m}")
         write_scenario_set(
-            spec_from(*SIZES, f"scenario.attackers={k}", f"scenario.defenders={m}"), path
+            make_spec(*SIZES, f"scenario.attackers={k}", f"scenario.defenders={m}"), path
         )
         sets[k, m] = ScenarioSet.load(path)
     return sets
@@ -202,23 +201,22 @@ def test_pure_pursuit_team_catches_more_than_random(team_sets):
 
 
 @pytest.mark.slow
-def test_a_learned_two_vs_one_policy_beats_a_random_one(tmp_path):
+def test_a_learned_two_vs_one_policy_beats_a_random_one(easy_pursuit, tmp_path, record_property):
     from omegaconf import OmegaConf
 
     from rlplat.agents import train
     from rlplat.config import compose_config
     from rlplat.envs.factory import build_env
     from rlplat.scenarios import ScenarioSpec
-    from tests.test_learning import EASY
 
-    spec = compose_config("scenarios", ["out_dir=unused", *EASY, "scenario.attackers=2"])
+    spec = compose_config("scenarios", ["out_dir=unused", *easy_pursuit, "scenario.attackers=2"])
     write_scenario_set(ScenarioSpec.from_dict(OmegaConf.to_container(spec.scenario)), tmp_path)
     cfg = compose_config(
         "train",
         [
             f"scenarios_dir={tmp_path}",
             "env.time_limit=20",
-            "train.max_minutes=1.5",
+            "train.max_minutes=null",  # frames only: the same budget on a slower machine
             "train.total_frames=30000",
             "train.eval_every_frames=8192",
             "train.progress=false",
@@ -236,6 +234,9 @@ def test_a_learned_two_vs_one_policy_beats_a_random_one(tmp_path):
     )  # fmt: skip
     torch.manual_seed(0)
     random = evaluate(env, lambda td: td.update(env.full_action_spec.rand())).capture_rate
+    record_property("random_val_capture_rate", random)
+    for key in ("frames", "best_val_capture_rate"):
+        record_property(key, summary[key])
     assert summary["best_val_capture_rate"] >= random + 0.2, (summary, random)
 
 
@@ -263,11 +264,10 @@ def test_the_gym_adapter_refuses_a_team(team_sets):
         make_gym_env("drone=defender_v1", scenarios=team_sets[1, 2])
 
 
-def test_a_team_run_and_a_lone_run_evaluate_on_the_same_defenders(team_sets, tmp_path):
+def test_a_team_run_and_a_lone_run_evaluate_on_the_same_defenders(team_sets, tmp_path, tiny_run):
     import csv
 
     from rlplat.eval.run import evaluate_run
-    from tests.test_train import tiny_run
 
     lone = tiny_run(team_sets[1, 1], tmp_path / "1v1")["run_dir"]
     team = tiny_run(team_sets[2, 1], tmp_path / "2v1")["run_dir"]
@@ -294,9 +294,10 @@ def test_a_team_run_and_a_lone_run_evaluate_on_the_same_defenders(team_sets, tmp
         evaluate_run(lone, scenarios_dir=team_sets[2, 1].path, out_dir=tmp_path / "g", **kwargs)
 
 
-def test_a_team_trained_defender_network_is_refused_for_scripted_defenders(team_sets, tmp_path):
+def test_a_team_trained_defender_network_is_refused_for_scripted_defenders(
+    team_sets, tmp_path, tiny_run
+):
     from rlplat.agents.controller import load_controller
-    from tests.test_train import tiny_run
 
     run = tiny_run(team_sets[1, 2], tmp_path / "run", "drone=defender_v1")["run_dir"]
     with pytest.raises(ConfigError, match=r"trained with 1 attackers and 2 defenders"):

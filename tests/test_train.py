@@ -1,57 +1,17 @@
 import csv
 import json
-import os
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 import torch
 
-from rlplat.agents import train
 from rlplat.agents.checkpoint import load_checkpoint, load_policy
 from rlplat.config import compose_config
 from rlplat.errors import ConfigError
-from tests.test_env import scenarios  # noqa: F401  (module-scoped fixture)
-
-ROOT = Path(__file__).resolve().parent.parent
-
-# A run of a few seconds: small batches, short episodes, validation twice.
-TINY = (
-    "algo.num_envs=4",
-    "algo.frames_per_batch=64",
-    "algo.init_random_frames=64",
-    "algo.batch_size=32",
-    "algo.utd_ratio=0.1",
-    "algo.actor_cells=[32,32]",
-    "algo.critic_cells=[32,32]",
-    "algo.compile=false",
-    "train.total_frames=256",
-    "train.eval_every_frames=128",
-    "train.progress=false",
-    "env.time_limit=3",
-)
 
 
-def tiny_run(scenarios, run_dir, *overrides):  # noqa: F811
-    cfg = compose_config("train", [*TINY, f"scenarios_dir={scenarios.path}", *overrides])
-    return train(cfg, run_dir=run_dir)
-
-
-def cli(*args, cwd=ROOT, env=None, timeout=300):
-    return subprocess.run(
-        [sys.executable, str(ROOT / "train.py"), *args],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        env={**os.environ, **(env or {})},
-        timeout=timeout,
-    )
-
-
-def test_cli_run_writes_the_run_directory(scenarios, tmp_path):  # noqa: F811
+def test_cli_run_writes_the_run_directory(scenarios, tmp_path, tiny, train_cli):
     run = tmp_path / "run"
-    res = cli(*TINY, f"scenarios_dir={scenarios.path}", f"hydra.run.dir={run}")
+    res = train_cli(*tiny, f"scenarios_dir={scenarios.path}", f"hydra.run.dir={run}")
     assert res.returncode == 0, res.stderr[-2000:]
     assert res.stdout.strip().splitlines()[-1].startswith("test capture rate ")
     assert str(run) in res.stdout
@@ -95,7 +55,7 @@ def test_cli_run_writes_the_run_directory(scenarios, tmp_path):  # noqa: F811
     ],
     ids=["v1", "v2-sparse", "v3-quadrotor", "sac_paper", "random-start"],
 )
-def test_component_swaps_train(scenarios, tmp_path, overrides):  # noqa: F811
+def test_component_swaps_train(scenarios, tmp_path, overrides, tiny_run):
     summary = tiny_run(scenarios, tmp_path, *overrides)
     assert summary["updates"] > 0
     assert 0.0 <= summary["test_capture_rate"] <= 1.0
@@ -104,7 +64,7 @@ def test_component_swaps_train(scenarios, tmp_path, overrides):  # noqa: F811
     assert state["config"]["drone"]["name"] == drone
 
 
-def test_sac_paper_matches_the_paper(scenarios):  # noqa: F811
+def test_sac_paper_matches_the_paper(scenarios):
     algo = compose_config("train", ["algo=sac_paper"]).algo
     assert list(algo.actor_cells) == list(algo.critic_cells) == [64, 64]
     assert algo.activation == "relu" and algo.batch_size == 128 and algo.gamma == 0.99
@@ -113,7 +73,7 @@ def test_sac_paper_matches_the_paper(scenarios):  # noqa: F811
 
 
 @pytest.mark.parametrize("logger", ["wandb", "tensorboard"])
-def test_loggers_write_inside_the_run_directory(scenarios, tmp_path, logger, monkeypatch):  # noqa: F811
+def test_loggers_write_inside_the_run_directory(scenarios, tmp_path, logger, monkeypatch, tiny_run):
     monkeypatch.delenv("WANDB_MODE", raising=False)
     tiny_run(scenarios, tmp_path, f"logger={logger}")
     assert (tmp_path / "metrics" / "scalars" / "eval" / "capture_rate.csv").is_file()
@@ -124,7 +84,7 @@ def test_loggers_write_inside_the_run_directory(scenarios, tmp_path, logger, mon
         assert list((tmp_path / "tensorboard").rglob("events.out.tfevents.*"))
 
 
-def test_resume_continues_counters_and_refuses_another_interface(scenarios, tmp_path):  # noqa: F811
+def test_resume_continues_counters_and_refuses_another_interface(scenarios, tmp_path, tiny_run):
     first = tiny_run(scenarios, tmp_path)
     saved = load_checkpoint(tmp_path / "checkpoints" / "last.pt")
     resumed = tiny_run(scenarios, tmp_path, "resume=true", "train.total_frames=512")
@@ -141,7 +101,7 @@ def test_resume_continues_counters_and_refuses_another_interface(scenarios, tmp_
         tiny_run(scenarios, tmp_path / "elsewhere", "resume=true")
 
 
-def test_best_checkpoint_loads_as_a_deterministic_policy(scenarios, tmp_path):  # noqa: F811
+def test_best_checkpoint_loads_as_a_deterministic_policy(scenarios, tmp_path, tiny_run):
     from rlplat import make_env
     from rlplat.eval.episodes import evaluate
 
@@ -153,7 +113,7 @@ def test_best_checkpoint_loads_as_a_deterministic_policy(scenarios, tmp_path):  
     assert torch.equal(a.returns, b.returns)
 
 
-def test_same_seed_same_training(scenarios, tmp_path):  # noqa: F811
+def test_same_seed_same_training(scenarios, tmp_path, tiny_run):
     a = tiny_run(scenarios, tmp_path / "a", "seed=3")
     b = tiny_run(scenarios, tmp_path / "b", "seed=3")
     sa = load_checkpoint(tmp_path / "a" / "checkpoints" / "last.pt")["actor"]
@@ -183,7 +143,9 @@ def test_same_seed_same_training(scenarios, tmp_path):  # noqa: F811
         ("algo.action_margin=2", r"algo.action_margin: must be in \[0, 1\], got 2.0"),
     ],
 )
-def test_bad_algo_values_are_refused_before_any_work(scenarios, tmp_path, override, message):  # noqa: F811
+def test_bad_algo_values_are_refused_before_any_work(
+    scenarios, tmp_path, override, message, tiny_run
+):
     with pytest.raises(ConfigError, match=message):
         tiny_run(scenarios, tmp_path, override)
     assert not tmp_path.joinpath("config.yaml").exists()
@@ -198,27 +160,29 @@ def test_bad_algo_values_are_refused_before_any_work(scenarios, tmp_path, overri
         (("logger.backend=mlflow",), "error: logger.backend: unknown 'mlflow'; valid: csv"),
     ],
 )
-def test_cli_bad_input_is_one_line_before_any_work(scenarios, tmp_path, args, message):  # noqa: F811
+def test_cli_bad_input_is_one_line_before_any_work(
+    scenarios, tmp_path, args, message, tiny, train_cli
+):
     run = tmp_path / "run"
-    res = cli(*TINY, f"scenarios_dir={scenarios.path}", f"hydra.run.dir={run}", *args)
+    res = train_cli(*tiny, f"scenarios_dir={scenarios.path}", f"hydra.run.dir={run}", *args)
     assert res.returncode == 2
     assert res.stderr.strip().splitlines()[-1].startswith(message)
     assert not (run / "checkpoints").exists()
 
 
-def test_cli_unknown_override_is_refused(tmp_path):
-    res = cli("algo.learning_rate=1", f"hydra.run.dir={tmp_path}")
+def test_cli_unknown_override_is_refused(tmp_path, train_cli):
+    res = train_cli("algo.learning_rate=1", f"hydra.run.dir={tmp_path}")
     assert res.returncode != 0 and "learning_rate" in res.stderr
-    res = cli("algo=ppo", f"hydra.run.dir={tmp_path}")
+    res = train_cli("algo=ppo", f"hydra.run.dir={tmp_path}")
     assert res.returncode != 0 and "sac_paper" in res.stderr  # lists the available options
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("launcher", ["basic", "joblib"])
-def test_multirun_sweeps_seeds(scenarios, tmp_path, launcher):  # noqa: F811
-    res = cli(
+def test_multirun_sweeps_seeds(scenarios, tmp_path, launcher, tiny, train_cli):
+    res = train_cli(
         "-m",
-        *TINY,
+        *tiny,
         f"scenarios_dir={scenarios.path}",
         "seed=0,1",
         f"hydra/launcher={launcher}",
@@ -229,13 +193,13 @@ def test_multirun_sweeps_seeds(scenarios, tmp_path, launcher):  # noqa: F811
     assert [s["seed"] for s in summaries] == [0, 1]
 
 
-def test_cluster_launcher_config_composes():
-    res = cli("hydra/launcher=cluster", "--cfg", "hydra", "--package", "hydra.launcher")
+def test_cluster_launcher_config_composes(train_cli):
+    res = train_cli("hydra/launcher=cluster", "--cfg", "hydra", "--package", "hydra.launcher")
     assert res.returncode == 0, res.stderr[-2000:]
     assert "submitit_launcher.SlurmLauncher" in res.stdout and "timeout_min: 60" in res.stdout
 
 
-def test_threads_option_sets_torchs_thread_count(scenarios, tmp_path):  # noqa: F811
+def test_threads_option_sets_torchs_thread_count(scenarios, tmp_path, tiny_run):
     before = torch.get_num_threads()
     want = 1 if before > 1 else 2
     try:
@@ -243,3 +207,10 @@ def test_threads_option_sets_torchs_thread_count(scenarios, tmp_path):  # noqa: 
         assert torch.get_num_threads() == want
     finally:
         torch.set_num_threads(before)
+
+
+def test_command_line_tools_run_with_the_suites_thread_count(run_python):
+    # What `pytest --torch-threads N` sets, the train.py / evaluate.py subprocesses use too.
+    res = run_python("-c", "import torch; print(torch.get_num_threads())")
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert int(res.stdout) == torch.get_num_threads()
