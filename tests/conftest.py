@@ -147,7 +147,7 @@ def tiny() -> tuple[str, ...]:
 @pytest.fixture(scope="session")
 def tiny_run():
     """tiny_run(scenarios, run_dir, *overrides) -> summary: a run of a few seconds, in-process."""
-    from rlplat.agents import train
+    from rlplat.experiment.training import train
 
     def run(scenarios: ScenarioSet, run_dir: Path, *overrides: str) -> dict:
         cfg = compose_config("train", [*TINY, f"scenarios_dir={scenarios.path}", *overrides])

@@ -2,8 +2,8 @@ import pytest
 import torch
 from tensordict import TensorDict
 
+from rlplat.agents.policies import make_scripted_policy
 from rlplat.agents.transitions import n_step_transitions, shape_rewards
-from rlplat.eval.baselines import PurePursuitPolicy
 from rlplat.eval.episodes import evaluate
 
 
@@ -62,22 +62,24 @@ def test_one_step_is_the_identity():
 
 
 def test_pure_pursuit_reference_captures_and_a_hover_does_not(scenarios):
-    from rlplat.config import compose_config
-    from rlplat.envs.factory import build_env
+    from rlplat.experiment.config import compose_config
+    from rlplat.experiment.factory import build_env
 
     cfg = compose_config("train", [f"scenarios_dir={scenarios.path}"])
     env = build_env(
         cfg, scenarios=scenarios, split="val", num_envs=len(scenarios.split("val")),
         scenario_order="sequential",
     )  # fmt: skip
-    pursuit = evaluate(env, PurePursuitPolicy(env))
+    pursuit = evaluate(env, make_scripted_policy("pure_pursuit", env))
     hover = evaluate(env, lambda td: td.set("action", torch.zeros(env.action_spec.shape)))
     # 13 of the 16 with torch's avx2 kernels, 12 with its default ones (the network-flown
     # defenders' episodes differ); the bar of 9 lets 3 more change on another machine.
     assert pursuit.capture_rate > 0.5
     assert hover.capture_rate < pursuit.capture_rate
     assert not pursuit.grounded.any()
-    assert pursuit.capture_rate == pytest.approx(evaluate(env, PurePursuitPolicy(env)).capture_rate)
+    assert pursuit.capture_rate == pytest.approx(
+        evaluate(env, make_scripted_policy("pure_pursuit", env)).capture_rate
+    )
 
 
 @pytest.mark.slow
@@ -85,8 +87,8 @@ def test_compiled_update_matches_eager(scenarios):
     import torch._inductor.config
 
     from rlplat.agents.sac import SACAgent, net_spec
-    from rlplat.config import compose_config
-    from rlplat.envs.factory import build_env
+    from rlplat.experiment.config import compose_config
+    from rlplat.experiment.factory import build_env
 
     cfg = compose_config("train", [f"scenarios_dir={scenarios.path}", "algo.batch_size=64"])
     env = build_env(cfg, scenarios=scenarios, split="train", num_envs=64)

@@ -5,8 +5,8 @@ import pytest
 import yaml
 from omegaconf import OmegaConf
 
-from rlplat.config import CONF_DIR, compose_config
 from rlplat.errors import ConfigError
+from rlplat.experiment.config import CONF_DIR, compose_config
 from rlplat.experiment.schema import (
     COMPONENTS,
     POLICIES,
@@ -267,7 +267,7 @@ def test_check_resume_refuses_a_changed_config_in_one_line():
     with pytest.raises(ConfigError) as info:
         check_resume(saved, current)
     message = str(info.value)
-    assert message.startswith("resume: the config differs from the run's config.yaml in ")
+    assert message.startswith("resume: the config differs from the run's own in ")
     assert "env.capture_radius (1.2 -> 2.0), reward.terms.capture (10.0 -> 5.0);" in message
     assert "only resume, train.total_frames, train.max_minutes" in message
     assert "\n" not in message

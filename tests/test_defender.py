@@ -11,20 +11,19 @@ from torchrl.envs.utils import ExplorationType, check_env_specs, set_exploration
 
 from rlplat import make_env
 from rlplat.agents.checkpoint import actor_from_state, load_checkpoint, save_checkpoint
-from rlplat.agents.controller import (
+from rlplat.agents.policies import (
     SHIPPED_DEFENDER,
     NetworkController,
-    export_controller,
     load_controller,
+    make_scripted_policy,
     shipped_path,
-    write_card,
 )
-from rlplat.config import CONF_DIR
 from rlplat.envs.components import OBSERVATIONS, DroneView, Reward, RewardContext
 from rlplat.errors import ConfigError
-from rlplat.eval.baselines import SetpointFollowerPolicy
 from rlplat.eval.episodes import evaluate
-from rlplat.eval.run import evaluate_run
+from rlplat.experiment.config import CONF_DIR
+from rlplat.experiment.controller import export_controller, write_card
+from rlplat.experiment.evaluation import evaluate_run
 from rlplat.scenarios import STRATEGIES, ScenarioSet
 
 
@@ -135,7 +134,7 @@ def test_shipped_defender_is_what_its_card_says():
     env = make_env("drone=defender_v1", "env.scenario_order=sequential", split="test", num_envs=500)
     assert env.scenario_set.digest == card["scenario_digest"]
     nn = evaluate(env, actor_from_state(state, env.action_spec[0]))
-    follower = evaluate(env, SetpointFollowerPolicy(env))
+    follower = evaluate(env, make_scripted_policy("setpoint_follower", env))
     # The card was written on another machine. The network's closed loop grows rounding
     # differences (the kernels torch picks for the CPU's instruction set, reduction order) into
     # different episodes: between torch's avx2 and default kernels on one machine, 10 of these
@@ -199,7 +198,7 @@ def test_defender_trains_and_evaluates_through_the_cli(
     card = json.loads((run / "controller.json").read_text())
     assert card["role"] == "defender" and set(card["test"]) == {"nn", "setpoint_follower"}
     assert card["test"]["nn"]["capture_rate"] == pytest.approx(summary["test_capture_rate"])
-    assert card["command"].startswith("python -m rlplat.agents.controller ")
+    assert card["command"].startswith("python -m rlplat.experiment.controller ")
     ev = evaluate_run(run, policy="setpoint_follower", plots=False)
     assert card["test"]["setpoint_follower"]["evasion_score"] == ev.summary["evasion_score"]
     assert 0.0 < ev.summary["mean_route_fraction"] <= 1.0

@@ -7,8 +7,8 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from rlplat.config import CONF_DIR
 from rlplat.envs.dynamics import DYNAMICS, QuadrotorDynamics, VelocityDynamics, _attitude_basis
+from rlplat.experiment.config import CONF_DIR
 
 PERIOD = 0.1  # s, control period used throughout
 

@@ -16,7 +16,7 @@ from rlplat.envs.components import (
     RewardContext,
     inside_ellipsoid,
 )
-from rlplat.envs.controllers import follow_route
+from rlplat.envs.kinematics import follow_route
 from rlplat.envs.pursuit import PursuitEnv, _closest_approach
 from rlplat.errors import ConfigError
 

@@ -12,18 +12,14 @@ import torch
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 
-from rlplat.config import compose_config
-from rlplat.envs.factory import build_env
+from rlplat.agents.policies import make_scripted_policy
 from rlplat.errors import ConfigError
-from rlplat.eval import evaluate_from_config, evaluate_run
-from rlplat.eval.baselines import (
-    PurePursuitPolicy,
-    SetpointFollowerPolicy,
-    make_baseline,
-)
 from rlplat.eval.episodes import evaluate
 from rlplat.eval.metrics import wilson_interval
-from rlplat.eval.run import episode_rows, summarize
+from rlplat.eval.tables import episode_rows, summarize
+from rlplat.experiment.config import compose_config
+from rlplat.experiment.evaluation import evaluate_from_config, evaluate_run
+from rlplat.experiment.factory import build_env
 from rlplat.scenarios import ScenarioSet
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -70,7 +66,7 @@ def test_hovering_defender_is_captured_at_the_computed_time(tmp_path):
     sset = hovering_defender_set(tmp_path, [-x for x in d0], v)
     cfg = compose_config("train", [*IDEAL, "env.time_limit=10"])
     env = build_env(cfg, scenarios=sset, split="test", num_envs=2, scenario_order="sequential")
-    results = evaluate(env, PurePursuitPolicy(env), record=True)
+    results = evaluate(env, make_scripted_policy("pure_pursuit", env), record=True)
 
     # The attacker flies at v from the first sub-step on (its start averages 0 and v), so after
     # k steps it is d0 - v dt k + v physics_dt / 2 away.
@@ -121,10 +117,10 @@ def test_setpoint_follower_flies_the_defender_like_the_scripted_one(write_small_
     def fly(learner, policy):
         cfg = compose_config("train", [f"drone.learner={learner}", "env.time_limit=20"])
         env = build_env(cfg, scenarios=setpoint_only, split="test", num_envs=16)
-        return evaluate(env, policy(env))
+        return evaluate(env, make_scripted_policy(policy, env))
 
-    a = fly("attacker", PurePursuitPolicy)
-    d = fly("defender", SetpointFollowerPolicy)
+    a = fly("attacker", "pure_pursuit")
+    d = fly("defender", "setpoint_follower")
     assert a.captured.any() and torch.equal(a.captured, d.captured)
     assert torch.allclose(a.min_distance, d.min_distance, atol=1e-3)
     assert torch.equal(a.length, d.length)
@@ -134,13 +130,13 @@ def test_baseline_registry_errors(scenarios):
     cfg = compose_config("train", [])
     env = build_env(cfg, scenarios=scenarios, split="test", num_envs=16)
     with pytest.raises(ConfigError, match=r"policy: unknown baseline 'lqr'; valid: pure_pursuit"):
-        make_baseline("lqr", env)
+        make_scripted_policy("lqr", env)
     with pytest.raises(
         ConfigError,
         match=r"policy: setpoint_follower flies the defender, this run's learner is the "
         r"attacker; valid: pure_pursuit, proportional_navigation$",
     ):
-        make_baseline("setpoint_follower", env)
+        make_scripted_policy("setpoint_follower", env)
 
 
 # A trained run, through the CLI ----------------------------------------------------------

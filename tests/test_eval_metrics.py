@@ -1,12 +1,8 @@
 import math
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
-import torch
-from tensordict import TensorDict
 
-from rlplat.eval.baselines import ProportionalNavigationPolicy
 from rlplat.eval.metrics import (
     iqm,
     outcome_stats,
@@ -106,37 +102,3 @@ def test_pick_episodes_takes_fastest_captures_and_worst_misses():
     assert pick_episodes(caught, 3) == [(1, "best"), (0, "best"), (2, "worst")]  # slowest
     assert pick_episodes(rows[:1], 3) == [(0, "best")]
     assert pick_episodes(rows, 0) == []
-
-
-def fake_env(velocity_other, max_speed=5.0):
-    """What ProportionalNavigationPolicy reads of an env: one env, the attacker learns."""
-    velocity = torch.zeros(1, 2, 3)
-    velocity[0, 1] = torch.tensor(velocity_other)
-    return SimpleNamespace(
-        learner=0,
-        team=slice(0, 1),
-        opponents=slice(1, 2),
-        group=None,
-        action_key="action",
-        pursuit_gain=1.0,
-        max_speed=torch.tensor([[max_speed, 2.0]]),
-        dynamics=SimpleNamespace(velocity=velocity),
-    )
-
-
-def pn_action(env, rel, **kwargs):
-    positions = torch.tensor([[[0.0, 0.0, 10.0], [rel[0], rel[1], 10.0 + rel[2]]]])
-    caught = torch.zeros(1, 1, dtype=torch.bool)
-    td = TensorDict({"positions": positions, "caught": caught}, batch_size=[1])
-    return ProportionalNavigationPolicy(env, **kwargs)(td)["action"][0].tolist()
-
-
-def test_proportional_navigation_leads_a_moving_target():
-    # Closing 10 m at 5 m/s takes 2 s; the target moves 2 m/s along y: aim 0.5 * 4 m ahead.
-    env = fake_env([0.0, 2.0, 0.0])
-    assert pn_action(env, (10.0, 0.0, 0.0)) == pytest.approx([1.0, 0.4, 0.0])
-    assert pn_action(env, (10.0, 0.0, 0.0), lead=0.0) == pytest.approx([1.0, 0.0, 0.0])
-    # A target faster than the learner on an axis: the lead time is capped.
-    env = fake_env([-6.0, 0.0, 0.0])
-    aim = -1.0 + 0.5 * -6.0 * 1.0
-    assert pn_action(env, (-1.0, 0.0, 0.0), max_lead_time=1.0)[0] == pytest.approx(aim / 5.0)

@@ -1,9 +1,11 @@
+import gymnasium as gym
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from rlplat import make_gym_env
+from rlplat import make_env, make_gym_env
 from rlplat.envs.gym import PursuitGymEnv
+from rlplat.errors import ConfigError
 
 
 def test_passes_gymnasium_checker(scenarios):
@@ -13,7 +15,7 @@ def test_passes_gymnasium_checker(scenarios):
 
 
 def test_paper_api_init_reset_step_close(scenarios):
-    env = PursuitGymEnv(scenarios, "drone=attacker_v1", split="val")
+    env = PursuitGymEnv(make_env("drone=attacker_v1", scenarios=scenarios, split="val"))
     obs, info = env.reset(seed=0)
     assert obs.shape == (12,) and obs.dtype == np.float32
     assert info["scenario_id"] == scenarios.ids["val"][0]
@@ -23,6 +25,20 @@ def test_paper_api_init_reset_step_close(scenarios):
     obs2, info2 = env.reset()
     assert info2["scenario_id"] == scenarios.ids["val"][1]  # the next scenario of the split
     env.close()
+
+
+def test_step_before_reset_is_refused_as_gymnasium_does(scenarios):
+    env = make_gym_env(scenarios=scenarios.path)
+    with pytest.raises(gym.error.ResetNeeded, match="before calling env.reset"):
+        env.step(env.action_space.sample())
+    env.reset(seed=0)
+    env.step(env.action_space.sample())  # and steps once reset
+    env.close()
+
+
+def test_wraps_only_a_batch_of_one(scenarios):
+    with pytest.raises(ConfigError, match="batch of one env, got num_envs=2"):
+        PursuitGymEnv(make_env(scenarios=scenarios, num_envs=2))
 
 
 @pytest.mark.slow

@@ -4,8 +4,8 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from rlplat.agents import train
-from rlplat.config import compose_config
+from rlplat.experiment.config import compose_config
+from rlplat.experiment.training import train
 from rlplat.scenarios import ScenarioSet, ScenarioSpec, write_scenario_set
 
 THRESHOLD = 0.6  # validation capture rate the default SAC must pass
@@ -44,8 +44,8 @@ def test_default_sac_learns_an_easy_pursuit(easy_pursuit, tmp_path, record_prope
 def _untrained(cfg, scenarios_dir) -> float:
     """Validation capture rate of the run's policy as initialised, before any update."""
     from rlplat.agents.sac import make_actor, net_spec
-    from rlplat.envs.factory import build_env
     from rlplat.eval.episodes import evaluate
+    from rlplat.experiment.factory import build_env
 
     scenarios = ScenarioSet.load(scenarios_dir)
     env = build_env(

@@ -9,9 +9,9 @@ from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
 from rlplat import make_env
+from rlplat.agents.policies import make_scripted_policy
 from rlplat.agents.transitions import agent_rows
 from rlplat.errors import ConfigError
-from rlplat.eval.baselines import make_baseline
 from rlplat.eval.episodes import evaluate
 from rlplat.scenarios import ScenarioSet, write_scenario_set
 
@@ -99,7 +99,7 @@ def test_the_observation_holds_team_mates_relative_state(team_sets):
 def test_a_caught_defender_leaves_play_and_the_last_capture_ends_the_episode(team_sets):
     env = make_env(scenarios=team_sets[2, 2], split="val", num_envs=16)
     env.set_seed(0)
-    rollout = env.rollout(600, make_baseline("pure_pursuit", env), break_when_any_done=False)
+    rollout = env.rollout(600, make_scripted_policy("pure_pursuit", env), break_when_any_done=False)
     caught, done = rollout["next", "caught"], rollout["next", "done"].squeeze(-1)
     partly = caught.any(-1) & ~caught.all(-1) & ~done
     assert partly.any(), "pure pursuit by two attackers should catch one defender before both"
@@ -191,7 +191,7 @@ def test_a_caught_drone_ends_its_own_rows():
 
 def test_pure_pursuit_team_catches_more_than_random(team_sets):
     env = make_env(scenarios=team_sets[2, 1], split="val", num_envs=16)
-    chase = evaluate(env, make_baseline("pure_pursuit", env))
+    chase = evaluate(env, make_scripted_policy("pure_pursuit", env))
 
     def random(td):
         return td.update(env.full_action_spec.rand())
@@ -204,9 +204,9 @@ def test_pure_pursuit_team_catches_more_than_random(team_sets):
 def test_a_learned_two_vs_one_policy_beats_a_random_one(easy_pursuit, tmp_path, record_property):
     from omegaconf import OmegaConf
 
-    from rlplat.agents import train
-    from rlplat.config import compose_config
-    from rlplat.envs.factory import build_env
+    from rlplat.experiment.config import compose_config
+    from rlplat.experiment.factory import build_env
+    from rlplat.experiment.training import train
     from rlplat.scenarios import ScenarioSpec
 
     spec = compose_config("scenarios", ["out_dir=unused", *easy_pursuit, "scenario.attackers=2"])
@@ -267,7 +267,7 @@ def test_the_gym_adapter_refuses_a_team(team_sets):
 def test_a_team_run_and_a_lone_run_evaluate_on_the_same_defenders(team_sets, tmp_path, tiny_run):
     import csv
 
-    from rlplat.eval.run import evaluate_run
+    from rlplat.experiment.evaluation import evaluate_run
 
     lone = tiny_run(team_sets[1, 1], tmp_path / "1v1")["run_dir"]
     team = tiny_run(team_sets[2, 1], tmp_path / "2v1")["run_dir"]
@@ -297,7 +297,7 @@ def test_a_team_run_and_a_lone_run_evaluate_on_the_same_defenders(team_sets, tmp
 def test_a_team_trained_defender_network_is_refused_for_scripted_defenders(
     team_sets, tmp_path, tiny_run
 ):
-    from rlplat.agents.controller import load_controller
+    from rlplat.agents.policies import load_controller
 
     run = tiny_run(team_sets[1, 2], tmp_path / "run", "drone=defender_v1")["run_dir"]
     with pytest.raises(ConfigError, match=r"trained with 1 attackers and 2 defenders"):
@@ -307,7 +307,7 @@ def test_a_team_trained_defender_network_is_refused_for_scripted_defenders(
 def test_a_capture_pays_every_attacker_and_the_root_reward_is_the_team_mean(team_sets):
     env = make_env(scenarios=team_sets[2, 1], split="val", num_envs=16)
     env.set_seed(0)
-    rollout = env.rollout(400, make_baseline("pure_pursuit", env), break_when_any_done=False)
+    rollout = env.rollout(400, make_scripted_policy("pure_pursuit", env), break_when_any_done=False)
     nxt = rollout["next"]
     reward = nxt["attacker", "reward"].squeeze(-1)  # (N, T, 2)
     captured = nxt["captured"].squeeze(-1)

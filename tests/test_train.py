@@ -5,8 +5,8 @@ import pytest
 import torch
 
 from rlplat.agents.checkpoint import load_checkpoint, load_policy
-from rlplat.config import compose_config
 from rlplat.errors import ConfigError
+from rlplat.experiment.config import compose_config
 
 
 def test_cli_run_writes_the_run_directory(scenarios, tmp_path, tiny, train_cli):
@@ -93,10 +93,15 @@ def test_resume_continues_counters_and_refuses_another_interface(scenarios, tmp_
     assert resumed["wall_time_s"] > first["wall_time_s"]
     after = load_checkpoint(tmp_path / "checkpoints" / "last.pt")
     assert after["counters"]["frames"] > saved["counters"]["frames"]
-    with pytest.raises(
-        ConfigError, match=r"resume: .*last.pt has obs_dim=9, this run has obs_dim=12"
-    ):
+    with pytest.raises(ConfigError, match=r"resume: the config differs .* in drone\.name \("):
         tiny_run(scenarios, tmp_path, "resume=true", "drone=attacker_v1")
+    # Not only the network interface: the episode's rules too, every differing key listed.
+    with pytest.raises(
+        ConfigError,
+        match=r"in env\.capture_radius \(1\.2 -> 2\.0\), reward\.terms\.capture \(10\.0 -> 5\.0\);",
+    ):
+        tiny_run(scenarios, tmp_path, "resume=true", "env.capture_radius=2.0",
+                 "reward.terms.capture=5.0")  # fmt: skip
     with pytest.raises(ConfigError, match=r"checkpoint: no file at .*last.pt"):
         tiny_run(scenarios, tmp_path / "elsewhere", "resume=true")
 

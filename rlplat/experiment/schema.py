@@ -397,8 +397,8 @@ def config_diff(
 
 
 def check_resume(saved: Mapping[str, Any], current: Mapping[str, Any]) -> None:
-    """Refuse to resume a run whose saved config (its ``config.yaml``) differs from the current
-    one in more than ``RESUME_FREE``.
+    """Refuse to resume a run whose saved config (its checkpoint's, as in its ``config.yaml``)
+    differs from the current one in more than ``RESUME_FREE``.
 
     Raises:
         ConfigError: one line listing each differing key with its saved -> current value.
@@ -414,6 +414,6 @@ def check_resume(saved: Mapping[str, Any], current: Mapping[str, Any]) -> None:
     shown = [f"{k} ({value(a, k)} -> {value(b, k)})" for k in keys[:10]]
     more = f" and {len(keys) - 10} more" if len(keys) > 10 else ""
     raise ConfigError(
-        f"resume: the config differs from the run's config.yaml in {', '.join(shown)}{more}; "
+        f"resume: the config differs from the run's own in {', '.join(shown)}{more}; "
         f"only {', '.join(RESUME_FREE)} may change on a resume"
     )
