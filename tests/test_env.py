@@ -330,7 +330,7 @@ def test_bad_env_option_is_refused(scenarios):
 
 
 def test_default_scenarios_are_generated_once_into_the_cache(small_sizes, tmp_path, monkeypatch):
-    import rlplat.envs.factory as factory
+    import rlplat.experiment.factory as factory
 
     monkeypatch.setattr(factory, "CACHE_DIR", tmp_path)
     env = make_env(*small_sizes, num_envs=2)

@@ -311,7 +311,7 @@ def test_cli_bad_input_is_one_line(tmp_path, run_python):
 
 def test_bad_thread_count_is_refused(trained_run):
     cfg = compose_config("evaluate", [f"run_dir={trained_run}", "threads=0"])
-    with pytest.raises(ConfigError, match=r"threads: must be a positive integer or null, got 0"):
+    with pytest.raises(ConfigError, match=r"threads: must be an integer >= 1 or null, got 0"):
         evaluate_from_config(cfg)
 
 

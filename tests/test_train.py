@@ -131,8 +131,8 @@ def test_same_seed_same_training(scenarios, tmp_path, tiny_run):
     ("override", "message"),
     [
         ("algo.n_steps=0", "algo.n_steps: must be an integer >= 1, got 0"),
-        ("algo.utd_ratio=0", "algo.utd_ratio: must be > 0, got 0"),
-        ("algo.batch_size=-4", "algo.batch_size: must be > 0, got -4"),
+        ("algo.utd_ratio=0", "algo.utd_ratio: must be a finite number > 0, got 0"),
+        ("algo.batch_size=-4", "algo.batch_size: must be an integer >= 1, got -4"),
         (
             "algo.init_policy=expert",
             "algo.init_policy: unknown 'expert'; valid: random, pure_pursuit, "
@@ -140,12 +140,15 @@ def test_same_seed_same_training(scenarios, tmp_path, tiny_run):
         ),
         (
             "algo.init_policy=setpoint_follower",
-            "algo.init_policy: not for this learner 'setpoint_follower'; valid: random, "
-            "pure_pursuit, proportional_navigation",
+            "algo.init_policy: 'setpoint_follower' flies the defender, drone.learner is the "
+            "attacker; valid: random, pure_pursuit, proportional_navigation",
         ),
-        ("algo.init_noise=-1", "algo.init_noise: must be >= 0, got -1"),
-        ("train.threads=0", "train.threads: must be a positive integer or null, got 0"),
-        ("algo.action_margin=2", r"algo.action_margin: must be in \[0, 1\], got 2.0"),
+        ("algo.init_noise=-1", "algo.init_noise: must be a finite number >= 0, got -1"),
+        ("train.threads=0", "train.threads: must be an integer >= 1 or null, got 0"),
+        (
+            "algo.action_margin=2",
+            r"algo.action_margin: must be a finite number in \[0, 1\], got 2$",
+        ),
     ],
 )
 def test_bad_algo_values_are_refused_before_any_work(
@@ -159,8 +162,11 @@ def test_bad_algo_values_are_refused_before_any_work(
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (("train.total_frames=0",), "error: train.total_frames: must be a positive integer, got 0"),
-        (("train.max_minutes=-1",), "error: train.max_minutes: must be > 0 or null, got -1"),
+        (("train.total_frames=0",), "error: train.total_frames: must be an integer >= 1, got 0"),
+        (
+            ("train.max_minutes=-1",),
+            "error: train.max_minutes: must be a finite number > 0 or null, got -1",
+        ),
         (("algo.frames_per_batch=30",), "error: algo.frames_per_batch: 30 is not a multiple"),
         (("logger.backend=mlflow",), "error: logger.backend: unknown 'mlflow'; valid: csv"),
     ],
