@@ -133,6 +133,7 @@ def test_export_writes_verified_artifacts_and_their_card(run, exported):
     c = card["timing"]["c"]
     assert c["calls"] >= 100_000 and 0 < c["median_us"] <= c["p99_us"] <= c["max_us"]
     assert c["max_over_median"] == pytest.approx(c["max_us"] / c["median_us"], rel=0.01)
+    assert 0 <= c["calls_over_3x_median"] < c["calls"] // 2
     for key in ("onnxruntime_per_call", "onnxruntime_per_batch_1024"):
         assert card["timing"][key]["median_us"] > 0
     assert card["machine"]["cpu"] and card["machine"]["compiler"]

@@ -177,13 +177,15 @@ int main(int argc, char **argv)
 
 
 def _stats_us(ns: np.ndarray) -> dict[str, float]:
-    """Median, p99 and max of per-call times given in ns, in microseconds."""
+    """Median, p99 and max of per-call times given in ns, in microseconds, and how many calls
+    took more than 3 x the median."""
     med, p99 = np.percentile(ns, [50, 99])
     return {
         "median_us": round(float(med) / 1e3, 4),
         "p99_us": round(float(p99) / 1e3, 4),
         "max_us": round(float(ns.max()) / 1e3, 4),
         "max_over_median": round(float(ns.max()) / max(float(med), 1e-9), 2),
+        "calls_over_3x_median": int((ns > 3 * med).sum()),
     }
 
 

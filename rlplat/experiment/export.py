@@ -195,7 +195,7 @@ def max_differences(actions: dict[str, np.ndarray]) -> dict[str, float]:
 def describe_lines(src: Source, env, features: list[dict[str, Any]]) -> list[str]:
     """The header comment of ``policy.h``: where the network came from and what it reads."""
     who = f"{src.cfg.drone.name} ({src.cfg.drone.learner})"
-    lines = [f"Network: {who}, source checkpoint sha256 {src.sha256}."]
+    lines = [f"Network: {who}; source checkpoint sha256:", f"  {src.sha256}"]
     if env.group is not None:
         lines.append(f"A team of {env.team_size} drones shares it: one call per drone and step.")
     lines += ["", "obs[i]: feature, unit (the network divides it by scale):"]
