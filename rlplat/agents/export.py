@@ -44,6 +44,8 @@ C_LAYERS: dict[type[nn.Module], str] = {
 }
 #: The ONNX opset the models are written in.
 ONNX_OPSET = 20
+#: The one function ``policy.h`` declares.
+C_API = "void rlplat_policy(const float obs[RLPLAT_OBS_DIM], float action[RLPLAT_ACT_DIM]);"
 
 
 def observation_key(group: str | None) -> str | tuple[str, str]:
@@ -272,7 +274,7 @@ def c_sources(actor: DeterministicActor, describe: Sequence[str] = ()) -> tuple[
         "/* obs: the observation exactly as the env emits it (SI units, the order above).\n"
         " * action: in [-1, 1]; times the drone's maximum speed per axis, the velocity\n"
         " * command. */\n"
-        "void rlplat_policy(const float obs[RLPLAT_OBS_DIM], float action[RLPLAT_ACT_DIM]);\n\n"
+        f"{C_API}\n\n"
         "#ifdef __cplusplus\n}\n#endif\n\n#endif /* RLPLAT_POLICY_H */\n"
     )
 

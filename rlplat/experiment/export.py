@@ -21,9 +21,11 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import platform
 import time
 from dataclasses import dataclass
+from importlib.metadata import version
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +37,13 @@ from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from rlplat.agents.checkpoint import actor_from_state, load_checkpoint
-from rlplat.agents.export import DeterministicActor, c_sources, observation_key, onnx_bytes
+from rlplat.agents.export import (
+    C_API,
+    DeterministicActor,
+    c_sources,
+    observation_key,
+    onnx_bytes,
+)
 from rlplat.agents.native import (
     OnnxPolicy,
     build_library,
@@ -222,6 +230,55 @@ def network_card(actor: DeterministicActor, state: dict[str, Any]) -> dict[str, 
     }
 
 
+def interface_card(src: Source, env, actor: DeterministicActor, features) -> dict[str, Any]:
+    """What the artifacts read and write, feature by feature, and who calls them."""
+    return {
+        "observation": {"name": src.cfg.observation.name, "dim": actor.obs_dim,
+                        "features": features},
+        "action": {
+            "name": src.cfg.action.name,
+            "dim": actor.action_dim,
+            "range": [-1.0, 1.0],
+            "features": ["v_cmd.x", "v_cmd.y", "v_cmd.z"][: actor.action_dim],
+            "unit": "1: times the drone's maximum speed per axis (m/s) = the velocity command",
+        },
+        "team": {"attackers": env.num_attackers, "defenders": env.num_defenders,
+                 "drones_sharing_the_policy": env.team_size},
+        "c_api": C_API,
+    }  # fmt: skip
+
+
+def measure_timing(header, source, onnx_policy, obs: np.ndarray, calls: int, compiler: str):
+    """The C function per call (``calls``, after a tenth as many), ONNX Runtime per call (a
+    tenth) and per batch of :data:`ONNX_BATCH` (a hundredth), on rows of ``obs``."""
+    return {
+        "c": time_c(header, source, obs[: ONNX_BATCH * 10], calls=calls,
+                    warmup=max(calls // 10, 1), compiler=compiler),
+        "onnxruntime_per_call": time_onnx(onnx_policy, obs, batch=1, calls=max(calls // 10, 1)),
+        f"onnxruntime_per_batch_{ONNX_BATCH}": time_onnx(
+            onnx_policy, obs, batch=ONNX_BATCH, calls=max(calls // 100, 1)
+        ),
+    }  # fmt: skip
+
+
+def machine_card(compiler: str) -> dict[str, Any]:
+    """Where the figures were measured."""
+    try:
+        load = [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        load = None
+    return {
+        "cpu": cpu_model(),
+        "compiler": compiler_version(compiler),
+        "system": f"{platform.system()} {platform.release()} {platform.machine()}",
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "onnxruntime": version("onnxruntime"),
+        "onnx": version("onnx"),
+        "load_average": load,
+    }
+
+
 # Export -------------------------------------------------------------------------------------
 
 
@@ -248,7 +305,10 @@ def export_run(
     """
     # Everything is checked before any work starts.
     if (run_dir is None) == (controller is None):
-        raise ConfigError("run_dir: set run_dir=DIR (a training run) or controller=FILE, not both")
+        raise ConfigError(
+            f"run_dir: set either run_dir=DIR (a training run) or controller=FILE, got "
+            f"run_dir={run_dir}, controller={controller}"
+        )
     if controller is not None and out_dir is None:
         raise ConfigError(f"out_dir: a controller export needs out_dir, got {out_dir}")
     if split not in SPLITS:
@@ -260,7 +320,7 @@ def export_run(
     else:
         src = run_source(Path(run_dir), ckpt, out_dir, scenarios_dir)
     scenarios = resolve_scenarios(src.cfg, src.scenarios_dir)
-    same_set = check_scenarios(scenarios, src.scenario_digest, False, "checkpoint")
+    same_set = check_scenarios(scenarios, src.scenario_digest, False, f"recorded with {src.path}")
     n = len(scenarios.split(split))
     env = build_env(src.cfg, scenarios=scenarios, split=split, num_envs=n,
                     scenario_order="sequential")  # fmt: skip
@@ -295,17 +355,9 @@ def export_run(
             f"observations, more than tolerance={tolerance:g}; nothing written"
         )
 
-    # Timing on this machine.
-    timing = {
-        "c": time_c(header, source, x[:ONNX_BATCH * 10], calls=timing_calls,
-                    warmup=max(timing_calls // 10, 1), compiler=compiler),
-        "onnxruntime_per_call": time_onnx(onnx_policy, x, batch=1,
-                                          calls=max(timing_calls // 10, 1)),
-        f"onnxruntime_per_batch_{ONNX_BATCH}": time_onnx(onnx_policy, x, batch=ONNX_BATCH,
-                                                         calls=max(timing_calls // 100, 1)),
-    }  # fmt: skip
-
-    # Write: artifacts first, the card (which names their hashes) last.
+    # Timing on this machine, then the card; the artifacts are written first, the card (which
+    # names their hashes) last.
+    timing = measure_timing(header, source, onnx_policy, x, timing_calls, compiler)
     files = {"policy.onnx": model, "policy.h": header.encode(), "policy.c": source.encode()}
     card = {
         "format_version": 1,
@@ -317,21 +369,7 @@ def export_run(
             "learner": src.cfg.drone.learner,
             "scenario_digest": src.scenario_digest,
         },
-        "interface": {
-            "observation": {"name": src.cfg.observation.name, "dim": actor.obs_dim,
-                            "features": features},
-            "action": {
-                "name": src.cfg.action.name,
-                "dim": actor.action_dim,
-                "range": [-1.0, 1.0],
-                "features": ["v_cmd.x", "v_cmd.y", "v_cmd.z"][: actor.action_dim],
-                "unit": "1: times the drone's maximum speed per axis (m/s) = the velocity command",
-            },
-            "team": {"attackers": env.num_attackers, "defenders": env.num_defenders,
-                     "drones_sharing_the_policy": env.team_size},
-            "c_api": "void rlplat_policy(const float obs[RLPLAT_OBS_DIM], "
-                     "float action[RLPLAT_ACT_DIM]);",
-        },
+        "interface": interface_card(src, env, actor, features),
         "network": network_card(actor, src.state),
         "files": {k: {"sha256": sha256_bytes(v), "bytes": len(v)} for k, v in files.items()},
         "equivalence": {
@@ -342,33 +380,13 @@ def export_run(
             "tolerance": tolerance,
         },
         "timing": timing,
-        "machine": {
-            "cpu": cpu_model(),
-            "compiler": compiler_version(compiler),
-            "system": f"{platform.system()} {platform.release()} {platform.machine()}",
-            "python": platform.python_version(),
-            "torch": torch.__version__,
-            "onnxruntime": _version("onnxruntime"),
-            "onnx": _version("onnx"),
-            "load_average": _load_average(),
-        },
+        "machine": machine_card(compiler),
     }  # fmt: skip
     for name, data in files.items():
         atomic_write_bytes(src.out_dir / name, data)
     atomic_write_text(src.out_dir / "card.json", json.dumps(card, indent=2) + "\n")
     log.info("wrote %s", src.out_dir)
     return {**card, "out_dir": str(src.out_dir)}
-
-
-def _version(module: str) -> str:
-    return getattr(__import__(module), "__version__", "?")
-
-
-def _load_average() -> list[float] | None:
-    try:
-        return [round(x, 2) for x in __import__("os").getloadavg()]
-    except OSError:
-        return None
 
 
 def export_from_config(cfg: DictConfig) -> list[str]:
