@@ -11,3 +11,7 @@ class ConfigError(RlplatError, ValueError):
 
 class ScenarioFileError(RlplatError):
     """A scenario set on disk is missing, truncated, edited or of another schema version."""
+
+
+class ExportError(RlplatError):
+    """An exported artifact does not compute what the network it came from computes."""

@@ -75,6 +75,8 @@ class _Observation:
 
     own_layout: tuple[str, ...] = ()  # "p" or "v" per 3-vector of the drone's own features
     other_layout: tuple[str, ...] = ()  # "p" or "v" per 3-vector of each other drone's block
+    own_names: tuple[str, ...] = ()  # what each own 3-vector is (same order as own_layout)
+    other_names: tuple[str, ...] = ()  # each other drone's, "{d}" standing for that drone
 
     def __init__(
         self,
@@ -98,6 +100,26 @@ class _Observation:
         per = {"p": [float(position_scale)] * 3, "v": [float(velocity_scale)] * 3, "f": [1.0]}
         self.scale = [x for kind in layout for x in per[kind]]
         self.dim = len(self.scale)
+
+    def features(self) -> list[dict[str, str | float]]:
+        """What each of the ``dim`` features is: ``name`` (e.g. ``(p_opponent0 - p_own).x``),
+        ``unit`` (``m``, ``m/s`` or ``1`` for an in-play flag) and ``scale``, in order."""
+        units = {"p": "m", "v": "m/s"}
+        own = zip(self.own_names, self.own_layout, strict=True)
+        named = [(name, units[kind]) for name, kind in own]
+        others = [f"opponent{i}" for i in range(self.opponents)]
+        others += [f"mate{j}" for j in range(self.mates)]
+        for d in others:
+            block = zip(self.other_names, self.other_layout, strict=True)
+            named += [(name.format(d=d), units[kind]) for name, kind in block]
+            if self.in_play:
+                named.append((f"in_play_{d}", "1"))
+        out = []
+        for name, unit in named:
+            axes = ("",) if unit == "1" else (".x", ".y", ".z")
+            vector = f"({name})" if " " in name else name
+            out += [{"name": vector + axis if axis else name, "unit": unit} for axis in axes]
+        return [{**f, "scale": s} for f, s in zip(out, self.scale, strict=True)]
 
     def __call__(self, view: DroneView) -> Tensor:
         """The observation (*B, dim) float32."""
@@ -127,6 +149,7 @@ class AbsoluteObservation(_Observation):
     (*B, 12) with one opponent."""
 
     own_layout, other_layout = ("p", "v"), ("p", "v")
+    own_names, other_names = ("p_own", "v_own"), ("p_{d}", "v_{d}")
 
     def _own(self, view: DroneView) -> list[Tensor]:
         return [view.own_position, view.own_velocity]
@@ -139,6 +162,7 @@ class RelativePositionObservation(_Observation):
     """Relative position only: [p_other - p_own per other drone], (*B, 3) with one opponent."""
 
     other_layout = ("p",)
+    other_names = ("p_{d} - p_own",)
 
     def _other(self, view: DroneView, position: Tensor, velocity: Tensor) -> Tensor:
         return position - view.own_position.unsqueeze(-2)
@@ -151,6 +175,7 @@ class RelativeStateObservation(_Observation):
     """
 
     own_layout, other_layout = ("v",), ("p", "v")
+    own_names, other_names = ("v_own",), ("p_{d} - p_own", "v_{d} - v_own")
 
     def _own(self, view: DroneView) -> list[Tensor]:
         return [view.own_velocity]
@@ -169,6 +194,7 @@ class RouteStateObservation(RelativeStateObservation):
     """
 
     own_layout = ("v", "p")
+    own_names = ("v_own", "setpoint - p_own")
 
     def _own(self, view: DroneView) -> list[Tensor]:
         return [view.own_velocity, view.setpoint - view.own_position]

@@ -15,6 +15,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
+from rlplat.agents.export import ARTIFACTS
 from rlplat.agents.policies import POLICIES
 from rlplat.cli import exit_on_error
 from rlplat.errors import ConfigError
@@ -42,8 +43,13 @@ COLUMNS = (
 )
 
 
+def _learned(summary: dict[str, Any]) -> bool:
+    """A run's own network (its checkpoint, or an export of it), not a scripted baseline."""
+    return summary["policy"] == "checkpoint" or summary["policy"] in ARTIFACTS
+
+
 def _order(summary: dict[str, Any]) -> tuple[int, int, str]:
-    if summary["policy"] == "checkpoint":
+    if _learned(summary):
         return (0, 0 if summary["name"] == "best" else 1, summary["name"])
     return (1, list(POLICIES).index(summary["policy"]), summary["name"])
 
@@ -76,7 +82,7 @@ def table_rows(summaries: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """One row of :data:`COLUMNS` per evaluated policy."""
     rows = []
     for s in summaries:
-        learned = s["policy"] == "checkpoint"
+        learned = _learned(s)
         rows.append(
             {
                 "policy": f"{s['drone']} ({s['name']})" if learned else s["policy"],

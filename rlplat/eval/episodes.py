@@ -171,3 +171,36 @@ def evaluate(
         defender_caught=caught.cpu(),
         positions=None if positions is None else torch.stack(positions, 1).cpu(),
     )
+
+
+@torch.no_grad()
+def rollout_observations(
+    env: PursuitEnv, policy, key: str | tuple[str, ...], *, deterministic: bool = True
+) -> torch.Tensor:
+    """Every observation ``key`` a learning drone acted on while its episode ran, flying each
+    scenario of ``env``'s split once with ``policy`` as :func:`evaluate` does: (R, obs_dim)
+    float32 on the CPU, in step order (a team's drones one row each).
+
+    With ``deterministic=False`` the policy samples its actions (torch's global generator),
+    which visits states near the deterministic episodes'.
+    """
+    n = env.batch_size[0]
+    if n != len(env.scenarios) or env.sampler.order != "sequential":
+        raise ValueError(
+            f"rollout_observations: needs one env per scenario ({len(env.scenarios)}) walked "
+            f"sequentially, got num_envs={n}, order={env.sampler.order}"
+        )
+    kind = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
+    env.set_seed(0)
+    td = env.reset()
+    alive = torch.ones(n, dtype=torch.bool, device=env.device)
+    rows = []
+    with set_exploration_type(kind):
+        while alive.any():
+            obs = td[key]
+            rows.append(obs[alive].reshape(-1, obs.shape[-1]).cpu())
+            td = env.step(policy(td))
+            nxt: TensorDictBase = td["next"]
+            alive &= ~nxt["done"].squeeze(-1)
+            td = nxt.exclude("reward", "done", "terminated", "truncated")
+    return torch.cat(rows)

@@ -68,6 +68,36 @@ def outcome_table(groups: Mapping[str, Mapping[str, Any]], first: str) -> list[s
     return lines
 
 
+def _artifact_lines(s: Mapping[str, Any]) -> list[str]:
+    """What an evaluation of an exported artifact adds: its files, and the episodes whose
+    outcome differs from the torch policy's on the same scenarios."""
+    if "artifact" not in s:
+        return []
+    files = ", ".join(f"`{k}` sha256 `{v[:12]}`" for k, v in s["artifact"]["files"].items())
+    lines = [
+        f"- artifact: {files} from `{s['artifact']['dir']}`",
+        f"- outcomes differing from the torch policy on the same scenarios: "
+        f"**{s['outcomes_differing_from_torch']}**, {s['captures_differing_from_torch']} of "
+        f"them in capture (torch capture rate {_fmt(s['torch_capture_rate'])})",
+    ]
+    if s["differences_from_torch"]:
+        lines += [
+            "",
+            "| scenario | torch: captured, crashed, steps | this policy |",
+            "|---|---|---|",
+        ]
+        for d in s["differences_from_torch"]:
+            ref, own = d["torch"], d[s["policy"]]
+            lines.append(f"| {d['scenario_id']} | {_outcome(ref)} | {_outcome(own)} |")
+    return lines
+
+
+def _outcome(o: Mapping[str, Any]) -> str:
+    yes = {True: "yes", False: "no"}
+    text = f"{yes[bool(o['captured'])]}, {yes[bool(o['grounded'])]}, {o['steps']}"
+    return text + (f", {o['defenders_caught']} caught" if "defenders_caught" in o else "")
+
+
 def write_report(
     out_dir: Path,
     summary: Mapping[str, Any],
@@ -82,6 +112,9 @@ def write_report(
     s = summary
     learned = f"{s['drone']} ({s['name']} checkpoint)"
     who = learned if s["policy"] == "checkpoint" else f"{s['policy']} (scripted baseline)"
+    if "artifact" in s:
+        kind = {"onnx": "ONNX, in ONNX Runtime", "c": "C, one call per drone and step"}
+        who = f"{s['drone']} ({s['name']}: the export as {kind[s['policy']]})"
     md = [
         f"# Evaluation: {who} on the {s['split']} split",
         "",
@@ -93,6 +126,7 @@ def write_report(
         + ("" if s["scenario_digest_matches"] else " (**not the set the run trained with**)"),
         "- every episode flown once, deterministically: `episodes.csv` has one row per scenario "
         "(its parameters and its outcome)",
+        *_artifact_lines(s),
         "",
         "## Outcome",
         "",

@@ -136,6 +136,27 @@ def summarize(rows: list[dict[str, Any]], terms: list[str], edges: list[float]) 
     }
 
 
+#: The columns that make an episode's outcome: two policies agree on a scenario when these do.
+OUTCOME_COLUMNS = ("captured", "grounded", "steps", "defenders_caught")
+
+
+def differing_outcomes(
+    rows: list[dict[str, Any]], reference: list[dict[str, Any]]
+) -> list[dict[str, Any]]:
+    """The episodes whose outcome (:data:`OUTCOME_COLUMNS`: capture, crash, episode length,
+    defenders caught) differs between two tables of the same scenarios (:func:`episode_rows`):
+    ``{"scenario_id", "outcome", "reference"}`` each, the two outcomes as column -> value."""
+    if [r["scenario_id"] for r in rows] != [r["scenario_id"] for r in reference]:
+        raise ValueError("differing_outcomes: the tables hold different scenarios")
+    keys = [k for k in OUTCOME_COLUMNS if rows and k in rows[0]]
+    out = []
+    for a, b in zip(rows, reference, strict=True):
+        if any(a[k] != b[k] for k in keys):
+            outcome, ref = ({k: r[k] for k in keys} for r in (a, b))
+            out.append({"scenario_id": a["scenario_id"], "outcome": outcome, "reference": ref})
+    return out
+
+
 def _xyz(name: str, value: list[float]) -> dict[str, float]:
     return {f"{name}_{a}": v for a, v in zip("xyz", value, strict=True)}
 

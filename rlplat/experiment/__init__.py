@@ -2,9 +2,9 @@
 
 It composes and checks configs (:mod:`~rlplat.experiment.config`), builds scenario sets, envs,
 policies and loggers (:mod:`~rlplat.experiment.factory`, :mod:`~rlplat.experiment.logger`), and
-runs training (:func:`train`), evaluation (:func:`evaluate_run`) and controller files. Nothing
-below this package sees a ``DictConfig``; the entry points (``train.py``, ``evaluate.py``) only
-call it.
+runs training (:func:`train`), evaluation (:func:`evaluate_run`), controller files and exports
+(:mod:`~rlplat.experiment.export`: ONNX and C). Nothing below this package sees a
+``DictConfig``; the entry points (``train.py``, ``evaluate.py``, ``export.py``) only call it.
 """
 
 __all__ = ["evaluate_from_config", "evaluate_run", "train"]

@@ -3,6 +3,11 @@
 ``evaluate_run(run_dir, ...)`` is what ``evaluate.py`` calls; tests and notebooks call it the
 same way. It writes ``<run_dir>/eval/<split>-<name>/``: ``episodes.csv`` (one row per
 scenario), ``summary.json``, ``report.md`` and PNG plots.
+
+``policy=onnx`` and ``policy=c`` fly the files ``export.py`` wrote for the checkpoint
+(``<run_dir>/export/<ckpt>/``) instead of the torch actor: ONNX Runtime, or ``policy.c`` built
+into a shared library and called through ctypes once per drone and step. The torch actor flies
+the same scenarios too, and the summary lists the episodes whose outcome differs.
 """
 
 from __future__ import annotations
@@ -19,22 +24,26 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from rlplat.agents.checkpoint import actor_from_state, load_checkpoint, saved_interface
+from rlplat.agents.export import ARTIFACTS, observation_key
+from rlplat.agents.native import OnnxPolicy, artifact_module, build_library, find_compiler
 from rlplat.agents.policies import POLICIES, make_scripted_policy, policies_for
 from rlplat.envs.pursuit import PursuitEnv
 from rlplat.errors import ConfigError
 from rlplat.eval.compare import compare
 from rlplat.eval.episodes import EpisodeResults, evaluate
 from rlplat.eval.report import write_report
-from rlplat.eval.tables import episode_rows, summarize, write_csv
+from rlplat.eval.tables import differing_outcomes, episode_rows, summarize, write_csv
 from rlplat.experiment.factory import build_env, resolve_scenarios
 from rlplat.experiment.schema import validate_evaluate_config
-from rlplat.io import atomic_write_text
+from rlplat.io import atomic_write_text, sha256_bytes
 from rlplat.scenarios import SPLITS, ScenarioSet
 
 log = logging.getLogger(__name__)
 
-#: ``policy=`` choices: the run's own checkpoint, or a scripted baseline.
-EVAL_POLICIES = ("checkpoint", *POLICIES)
+#: ``policy=`` choices: the run's own checkpoint, its exported artifacts, or a scripted baseline.
+EVAL_POLICIES = ("checkpoint", *ARTIFACTS, *POLICIES)
+#: The files each artifact policy flies, in ``<run_dir>/export/<ckpt>/``.
+ARTIFACT_FILES = {"onnx": ("policy.onnx",), "c": ("policy.h", "policy.c")}
 #: ``ckpt=`` names that mean a checkpoint of the run (anything else is a path).
 CHECKPOINT_NAMES = ("best", "last")
 
@@ -68,6 +77,48 @@ def checkpoint_path(run_dir: Path, ckpt: str) -> Path:
         hint = "" if ckpt in CHECKPOINT_NAMES else f" ({names}, or the path of a checkpoint)"
         raise ConfigError(f"ckpt: no checkpoint at {path}{hint}")
     return path
+
+
+def export_dir(run_dir: Path, ckpt: str, path: Path) -> Path:
+    """Where ``export.py`` writes the artifacts of checkpoint ``ckpt`` (at ``path``)."""
+    return run_dir / "export" / (ckpt if ckpt in CHECKPOINT_NAMES else path.stem)
+
+
+def artifact_files(policy: str, run_dir: Path, ckpt: str, path: Path) -> dict[str, bytes]:
+    """The exported files ``policy`` flies, checked against the export's card: they must be
+    the ones exported from the checkpoint at ``path`` as it is now."""
+    where = export_dir(run_dir, ckpt, path)
+    command = f"python export.py run_dir={run_dir} ckpt={ckpt}"
+    card_path = where / "card.json"
+    if not card_path.is_file():
+        raise ConfigError(f"policy: {policy} needs the export in {where}; run `{command}` first")
+    card = json.loads(card_path.read_text())
+    if card["source"]["sha256"] != sha256_bytes(path.read_bytes()):
+        raise ConfigError(
+            f"policy: the export in {where} is of another checkpoint than {path} (sha256 "
+            f"{card['source']['sha256'][:12]}); run `{command}` again"
+        )
+    files = {}
+    for name in ARTIFACT_FILES[policy]:
+        data = (where / name).read_bytes() if (where / name).is_file() else b""
+        if sha256_bytes(data) != card["files"][name]["sha256"]:
+            raise ConfigError(
+                f"policy: {where / name} is missing or not the file the card names; "
+                f"run `{command}` again"
+            )
+        files[name] = data
+    return files
+
+
+def artifact_policy(policy: str, files: dict[str, bytes], state, env: PursuitEnv, compiler: str):
+    """The exported artifact as a policy of ``env``'s learners (one C call per drone)."""
+    dims = state["net"]["obs_dim"], state["net"]["action_dim"]
+    if policy == "onnx":
+        runner = OnnxPolicy(files["policy.onnx"], *dims)
+    else:
+        header, source = files["policy.h"].decode(), files["policy.c"].decode()
+        runner, _ = build_library(header, source, *dims, compiler=compiler)
+    return artifact_module(runner, observation_key(env.group), env.action_key)
 
 
 def check_policy_fits(state: dict[str, Any], cfg: DictConfig, env: PursuitEnv, path) -> None:
@@ -129,13 +180,15 @@ def evaluate_run(
     trajectories: int = 6,
     speed_ratio_bins: Sequence[float] = (0.5, 0.8, 1.0, 1.25, 2.0),
     plots: bool = True,
+    compiler: str = "cc",
 ) -> Evaluation:
     """Replay every scenario of ``split`` once, deterministically, with the run's policy.
 
     Args:
         run_dir: a training run directory (``config.yaml``, ``checkpoints/``, ``summary.json``).
-        policy: ``checkpoint`` (the run's network) or a scripted policy of ``POLICIES``.
-        ckpt: ``best``, ``last`` or a checkpoint path (``policy=checkpoint`` only).
+        policy: ``checkpoint`` (the run's network), ``onnx`` or ``c`` (its export, see
+            ``export.py``) or a scripted policy of ``POLICIES``.
+        ckpt: ``best``, ``last`` or a checkpoint path (not for a scripted policy).
         split: ``test``, ``val`` or ``train``.
         strict_scenarios: refuse a scenario set whose digest differs from the run's.
         scenarios_dir: evaluate on this set instead of the run's.
@@ -146,6 +199,7 @@ def evaluate_run(
         trajectories: episodes drawn in 3D (half the fastest captures, half the worst misses).
         speed_ratio_bins: inner bin edges of attacker / defender maximum speed.
         plots: write the PNG plots and embed them in ``report.md``.
+        compiler: the C compiler that builds ``policy.c`` (``policy=c``).
     """
     # Everything is checked before any work starts.
     run_dir = Path(run_dir)
@@ -159,8 +213,14 @@ def evaluate_run(
     edges = [float(e) for e in speed_ratio_bins]
     if not edges or any(e <= 0 for e in edges) or edges != sorted(set(edges)):
         raise ConfigError(f"speed_ratio_bins: must be increasing and > 0, got {edges}")
-    path = checkpoint_path(run_dir, ckpt) if policy == "checkpoint" else None
+    learned = policy == "checkpoint" or policy in ARTIFACTS
+    path = checkpoint_path(run_dir, ckpt) if learned else None
     name = (ckpt if ckpt in CHECKPOINT_NAMES else path.stem) if path else policy
+    files = artifact_files(policy, run_dir, ckpt, path) if policy in ARTIFACTS else None
+    if policy == "c":
+        compiler = find_compiler(compiler)
+    if files is not None:
+        name = f"{name}-{policy}"
     out_dir = Path(out_dir) if out_dir is not None else run_dir / "eval" / f"{split}-{name}"
     summary_path = run_dir / "summary.json"
     run_summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
@@ -180,6 +240,8 @@ def evaluate_run(
     if state is not None:
         check_policy_fits(state, cfg, env, path)
         actor = actor_from_state(state, env.drone_action_spec, device, env.group)
+        if files is not None:
+            torch_actor, actor = actor, artifact_policy(policy, files, state, env, compiler)
     else:
         actor = make_scripted_policy(policy, env)
 
@@ -191,6 +253,27 @@ def evaluate_run(
 
     routes = env.routes.cpu()
     rows = episode_rows(results, scenarios, split, routes, env.num_attackers)
+    artifact = {}
+    if files is not None:  # the torch actor on the same scenarios: which outcomes differ
+        reference = evaluate(env, torch_actor)
+        ref_rows = episode_rows(reference, scenarios, split, routes, env.num_attackers)
+        differ = [
+            {"scenario_id": d["scenario_id"], "torch": d["reference"], policy: d["outcome"]}
+            for d in differing_outcomes(rows, ref_rows)
+        ]
+        flipped = [d for d in differ if d["torch"]["captured"] != d[policy]["captured"]]
+        artifact = {
+            "artifact": {
+                "dir": str(export_dir(run_dir, ckpt, path)),
+                "files": {k: sha256_bytes(v) for k, v in files.items()},
+            },
+            "torch_capture_rate": reference.capture_rate,
+            "outcomes_differing_from_torch": len(differ),
+            "captures_differing_from_torch": len(flipped),
+            "differences_from_torch": differ,
+        }
+        log.info("%d of %d outcomes differ from the torch policy's (%d captures)",
+                 len(differ), n, len(flipped))  # fmt: skip
     summary = {
         "policy": policy,
         "name": name,
@@ -208,6 +291,7 @@ def evaluate_run(
         "scenario_digest_matches": same_set,
         **summarize(rows, list(env.reward_fn.weights), edges),
         "eval_wall_time_s": round(wall, 3),
+        **artifact,
     }
     write_csv(out_dir / "episodes.csv", rows)
     atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=2) + "\n")
@@ -231,6 +315,7 @@ def evaluate_from_config(cfg: DictConfig) -> list[str]:
         "trajectories": cfg.trajectories,
         "speed_ratio_bins": list(cfg.speed_ratio_bins),
         "plots": bool(cfg.plots),
+        "compiler": cfg.compiler,
     }
     if cfg.threads is not None:
         torch.set_num_threads(cfg.threads)
@@ -243,9 +328,15 @@ def evaluate_from_config(cfg: DictConfig) -> list[str]:
         ev = evaluate_run(cfg.run_dir, policy=policy, out_dir=cfg.out_dir, **kwargs)
         s = ev.summary
         low, high = s["capture_rate_ci95"]
+        differ = (
+            f", {s['outcomes_differing_from_torch']} outcomes differ from the torch policy's "
+            f"({s['captures_differing_from_torch']} in capture)"
+            if "outcomes_differing_from_torch" in s
+            else ""
+        )
         lines.append(
             f"{s['name']}: capture rate {s['capture_rate']:.3f} [{low:.3f}, {high:.3f}] on "
-            f"{s['scenarios']} {s['split']} scenarios, report {ev.out_dir / 'report.md'}"
+            f"{s['scenarios']} {s['split']} scenarios{differ}, report {ev.out_dir / 'report.md'}"
         )
     if cfg.compare:
         lines.append(compare(cfg.run_dir, cfg.split))

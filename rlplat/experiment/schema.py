@@ -26,6 +26,7 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from rlplat.agents.export import ARTIFACTS
 from rlplat.agents.policies import POLICIES as SCRIPTED
 from rlplat.agents.sac import ACTIVATIONS
 from rlplat.envs.components import ACTIONS, OBSERVATIONS, REWARD_TERMS
@@ -79,8 +80,8 @@ def reward_terms(value: Any) -> str | None:
 
 #: Who may fly ``algo.init_random_frames``: uniform actions, or a baseline of the learner's role.
 INIT_POLICIES = ("random", *SCRIPTED)
-#: ``evaluate.py policy=`` choices: the run's checkpoint, or a baseline.
-POLICIES = ("checkpoint", *SCRIPTED)
+#: ``evaluate.py policy=`` choices: the run's checkpoint, its export, or a baseline.
+POLICIES = ("checkpoint", *ARTIFACTS, *SCRIPTED)
 #: Env outputs a learner's potential-based shaping may read (``algo.potential_key``).
 POTENTIAL_KEYS = ("distance",)
 #: torchrl's critic regression losses.
@@ -208,6 +209,22 @@ EVALUATE_RULES: dict[str, Rule] = {
     "trajectories": Num(integer=True, ge=0),
     "plots": flag,
     "speed_ratio_bins": Seq(POSITIVE, increasing=True),
+    "compiler": Text(),
+}
+
+#: conf/export.yaml.
+EXPORT_RULES: dict[str, Rule] = {
+    "run_dir": Text(null=True),
+    "ckpt": Text(),  # best | last | a checkpoint path
+    "controller": Text(null=True),
+    "out_dir": Text(null=True),
+    "scenarios_dir": Text(null=True),
+    "split": Choice(SPLITS),
+    "min_observations": COUNT,
+    "tolerance": POSITIVE,
+    "timing_calls": Num(integer=True, ge=100),
+    "compiler": Text(),
+    "threads": THREADS,
 }
 
 
@@ -295,10 +312,22 @@ def _check_evaluate_fields(c: Mapping[str, Any]) -> None:
             f"out_dir: must be null with compare=true (each policy has its own), "
             f"got {show(c['out_dir'])}"
         )
-    if c["policy"] != "checkpoint" and c["ckpt"] != "best":
+    if c["policy"] in SCRIPTED and c["ckpt"] != "best":
         raise ConfigError(
-            f"ckpt: {show(c['ckpt'])} is for policy=checkpoint only, got policy={c['policy']}"
+            f"ckpt: {show(c['ckpt'])} is for policy=checkpoint, onnx or c, got policy={c['policy']}"
         )
+
+
+def _check_export_fields(c: Mapping[str, Any]) -> None:
+    if (c["run_dir"] is None) == (c["controller"] is None):
+        raise ConfigError(
+            f"run_dir: set run_dir=DIR (a training run) or controller=FILE (a controller file), "
+            f"got run_dir={show(c['run_dir'])}, controller={show(c['controller'])}"
+        )
+    if c["controller"] is not None and c["out_dir"] is None:
+        raise ConfigError("out_dir: a controller export needs out_dir=DIR, got None")
+    if c["controller"] is not None and c["ckpt"] != "best":
+        raise ConfigError(f"ckpt: {show(c['ckpt'])} is for run_dir only, not with controller")
 
 
 # Checking ---------------------------------------------------------------------------------
@@ -328,6 +357,18 @@ def validate_evaluate_config(cfg: DictConfig) -> None:
     c = _resolved(cfg)
     check_table(c, EVALUATE_RULES)
     _check_evaluate_fields(c)
+
+
+def validate_export_config(cfg: DictConfig) -> None:
+    """Check a composed ``conf/export.yaml`` before any work starts (the run directory or
+    controller file itself is read, and checked, by the export).
+
+    Raises:
+        ConfigError: one line naming the first offending field and its value.
+    """
+    c = _resolved(cfg)
+    check_table(c, EXPORT_RULES)
+    _check_export_fields(c)
 
 
 def _resolved(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:

@@ -1,0 +1,24 @@
+"""Export a training run's policy: ``python export.py run_dir=DIR [ckpt=best|last|PATH]``.
+
+Writes ``DIR/export/<ckpt>/``: ``policy.onnx``, ``policy.h`` + ``policy.c`` (C99) and
+``card.json`` (interface, equivalence of torch, ONNX Runtime and C on rollout observations,
+timing); see conf/export.yaml. ``controller=FILE out_dir=DIR`` exports a controller file.
+"""
+
+import hydra
+from omegaconf import DictConfig
+
+from rlplat.cli import exit_on_error
+
+
+@hydra.main(config_path="conf", config_name="export", version_base="1.3")
+@exit_on_error
+def main(cfg: DictConfig) -> None:
+    from rlplat.experiment.export import export_from_config
+
+    for line in export_from_config(cfg):
+        print(line)
+
+
+if __name__ == "__main__":
+    main()

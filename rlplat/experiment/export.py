@@ -1,0 +1,421 @@
+"""Export a run's policy as ONNX and dependency-free C, verified and timed, with its card.
+
+``export_run(run_dir, ckpt=...)`` is what ``export.py`` calls; tests call it the same way. It
+writes ``<run_dir>/export/<ckpt>/`` (or ``out_dir``):
+
+- ``policy.onnx``: the deterministic actor (observation scaling, MLP, squashed and clamped
+  mean), dynamic batch dimension, checked with the ONNX checker;
+- ``policy.h``, ``policy.c``: the same network in C99 (``rlplat_policy(obs, action)``);
+- ``card.json``: interface (observation and action layout, units, scales), network, source
+  checkpoint sha256, scenario digest, the equivalence of torch, ONNX Runtime and C on the
+  observations of rollouts of the run's test split, and their timing on this machine.
+
+The three artifacts are byte-identical for a second export of the same checkpoint; the card
+holds measured times and is rewritten by each export. Everything is checked before any work,
+everything is verified before anything is written, and every file is written atomically. A
+controller file (e.g. the shipped defender network) exports the same way (``controller=``),
+rolled out on the configured scenario set of its drone bundle.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import platform
+import time
+from dataclasses import dataclass
+from importlib.metadata import version
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from hydra.errors import HydraException
+from omegaconf import DictConfig, OmegaConf, open_dict
+from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from rlplat.agents.checkpoint import actor_from_state, load_checkpoint
+from rlplat.agents.export import (
+    C_API,
+    DeterministicActor,
+    c_sources,
+    observation_key,
+    onnx_bytes,
+)
+from rlplat.agents.native import (
+    OnnxPolicy,
+    build_library,
+    compiler_version,
+    cpu_model,
+    find_compiler,
+    time_c,
+    time_onnx,
+)
+from rlplat.errors import ConfigError, ExportError
+from rlplat.eval.episodes import rollout_observations
+from rlplat.experiment.config import compose_config
+from rlplat.experiment.evaluation import (
+    check_policy_fits,
+    check_scenarios,
+    checkpoint_path,
+    export_dir,
+    load_run_config,
+)
+from rlplat.experiment.factory import build_env, resolve_scenarios
+from rlplat.experiment.schema import validate_export_config
+from rlplat.io import atomic_write_bytes, atomic_write_text, sha256_bytes
+from rlplat.scenarios import SPLITS
+
+log = logging.getLogger(__name__)
+
+#: The files of an export, in the order they are written (the card last).
+FILES = ("policy.onnx", "policy.h", "policy.c", "card.json")
+#: Observations per ONNX Runtime batch in the timing.
+ONNX_BATCH = 1024
+
+
+@dataclass(frozen=True)
+class Source:
+    """What an export reads: the checkpoint, the config of the env its rollouts fly in, where
+    its files go, and how the card names it."""
+
+    state: dict[str, Any]
+    path: Path
+    sha256: str
+    cfg: DictConfig
+    out_dir: Path
+    scenarios_dir: str | None
+    scenario_digest: str | None
+    described: dict[str, Any]
+
+
+def _load(path: Path) -> tuple[dict[str, Any], str]:
+    state = load_checkpoint(path)
+    if "actor" not in state or "net" not in state:
+        raise ConfigError(f"ckpt: {path} holds no actor network")
+    return state, sha256_bytes(path.read_bytes())
+
+
+def run_source(run_dir: Path, ckpt: str, out_dir, scenarios_dir) -> Source:
+    """A run's checkpoint ``ckpt`` (``best``, ``last`` or a path)."""
+    cfg = load_run_config(run_dir)
+    path = checkpoint_path(run_dir, ckpt)
+    state, sha = _load(path)
+    summary_path = run_dir / "summary.json"
+    summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+    digest = summary.get("scenario_digest") or state.get("scenario_digest")
+    described = {"run_dir": str(run_dir), "checkpoint": ckpt, "frames": _frames(state)}
+    out = Path(out_dir) if out_dir is not None else export_dir(run_dir, ckpt, path)
+    chosen = scenarios_dir or cfg.get("scenarios_dir")
+    return Source(state, path, sha, cfg, out, chosen, digest, described)
+
+
+def controller_source(controller: Path, out_dir, scenarios_dir) -> Source:
+    """A controller file (:mod:`rlplat.experiment.controller`, e.g. the shipped defender):
+    rolled out in the env of its drone bundle with the observation it was trained on."""
+    if not controller.is_file():
+        raise ConfigError(f"controller: no file at {controller}")
+    state, sha = _load(controller)
+    config = state.get("config", {})
+    drone = config.get("drone", {}).get("name")
+    try:
+        cfg = compose_config("train", [f"drone={drone}"])
+    except HydraException:
+        raise ConfigError(
+            f"controller: {controller} names drone '{drone}', which conf/drone does not hold"
+        ) from None
+    with open_dict(cfg):
+        for node in ("observation", "action"):
+            if node in config:
+                cfg[node] = OmegaConf.create(dict(config[node]))
+    source = state.get("source", {})
+    described = {"controller": controller.name, **source}
+    digest = source.get("scenario_digest")
+    return Source(state, controller, sha, cfg, Path(out_dir), scenarios_dir, digest, described)
+
+
+def _frames(state: dict[str, Any]) -> int | None:
+    return state.get("counters", {}).get("frames")
+
+
+def _check_tools() -> None:
+    try:
+        import onnx  # noqa: F401
+        import onnxruntime  # noqa: F401
+        import onnxscript  # noqa: F401
+    except ImportError as e:
+        raise ConfigError(
+            f"export: needs onnx, onnxruntime and onnxscript ({e.name} is missing); "
+            "pip install 'rlplat[export]'"
+        ) from None
+
+
+# Measuring ----------------------------------------------------------------------------------
+
+
+def collect_observations(env, actor, key, minimum: int) -> tuple[torch.Tensor, dict[str, Any]]:
+    """At least ``minimum`` observations from rollouts of ``env``'s split: the deterministic
+    pass (what the evaluator flies), then passes with sampled actions (seeded 1, 2, ...)."""
+    rows = [rollout_observations(env, actor, key)]
+    first, passes = len(rows[0]), 0
+    while sum(map(len, rows)) < minimum:
+        passes += 1
+        with torch.random.fork_rng():
+            torch.manual_seed(passes)
+            rows.append(rollout_observations(env, actor, key, deterministic=False))
+    obs = torch.cat(rows)
+    about = {
+        "count": len(obs),
+        "deterministic_pass": first,
+        "sampled_passes": passes,
+        "sampled_seeds": list(range(1, passes + 1)),
+    }
+    return obs, about
+
+
+def torch_actions(state: dict[str, Any], obs: torch.Tensor) -> np.ndarray:
+    """The actions of the checkpoint's TorchRL actor as the evaluator flies it
+    (``ExplorationType.DETERMINISTIC``), one batch."""
+    from torchrl.data import Bounded
+
+    dim = state["net"]["action_dim"]
+    actor = actor_from_state(state, Bounded(-1.0, 1.0, shape=(dim,)))
+    td = TensorDict(observation=obs, batch_size=[len(obs)])
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        return actor(td)["action"].numpy()
+
+
+def max_differences(actions: dict[str, np.ndarray]) -> dict[str, float]:
+    """Largest |Δ action| of each pair of implementations, ``a_vs_b``."""
+    names = list(actions)
+    return {
+        f"{a}_vs_{b}": float(np.abs(actions[a] - actions[b]).max())
+        for i, a in enumerate(names)
+        for b in names[i + 1 :]
+    }
+
+
+# The card -----------------------------------------------------------------------------------
+
+
+def describe_lines(src: Source, env, features: list[dict[str, Any]]) -> list[str]:
+    """The header comment of ``policy.h``: where the network came from and what it reads."""
+    who = f"{src.cfg.drone.name} ({src.cfg.drone.learner})"
+    lines = [f"Network: {who}; source checkpoint sha256:", f"  {src.sha256}"]
+    if env.group is not None:
+        lines.append(f"A team of {env.team_size} drones shares it: one call per drone and step.")
+    lines += ["", "obs[i]: feature, unit (the network divides it by scale):"]
+    lines += [
+        f"  [{i}] {f['name']}, {f['unit']} (scale {f['scale']:g})" for i, f in enumerate(features)
+    ]
+    return lines
+
+
+def network_card(actor: DeterministicActor, state: dict[str, Any]) -> dict[str, Any]:
+    net = state["net"]
+    params = sum(p.numel() for p in actor.mlp.parameters())
+    return {
+        "layers": actor.layers(),
+        "hidden": list(net["actor_cells"]),
+        "activation": net["activation"],
+        "parameters": params,
+        "action_margin": actor.action_margin,
+        "output": (
+            f"action = clamp({1 + actor.action_margin:g} * tanh(loc), -1, 1), loc = the first "
+            f"{actor.action_dim} outputs of the last layer (the others set the spread of the "
+            "trained stochastic policy and are not used)"
+        ),
+    }
+
+
+def interface_card(src: Source, env, actor: DeterministicActor, features) -> dict[str, Any]:
+    """What the artifacts read and write, feature by feature, and who calls them."""
+    return {
+        "observation": {"name": src.cfg.observation.name, "dim": actor.obs_dim,
+                        "features": features},
+        "action": {
+            "name": src.cfg.action.name,
+            "dim": actor.action_dim,
+            "range": [-1.0, 1.0],
+            "features": ["v_cmd.x", "v_cmd.y", "v_cmd.z"][: actor.action_dim],
+            "unit": "1: times the drone's maximum speed per axis (m/s) = the velocity command",
+        },
+        "team": {"attackers": env.num_attackers, "defenders": env.num_defenders,
+                 "drones_sharing_the_policy": env.team_size},
+        "c_api": C_API,
+    }  # fmt: skip
+
+
+def measure_timing(header, source, onnx_policy, obs: np.ndarray, calls: int, compiler: str):
+    """The C function per call (``calls``, after a tenth as many), ONNX Runtime per call (a
+    tenth) and per batch of :data:`ONNX_BATCH` (a hundredth), on rows of ``obs``."""
+    return {
+        "c": time_c(header, source, obs[: ONNX_BATCH * 10], calls=calls,
+                    warmup=max(calls // 10, 1), compiler=compiler),
+        "onnxruntime_per_call": time_onnx(onnx_policy, obs, batch=1, calls=max(calls // 10, 1)),
+        f"onnxruntime_per_batch_{ONNX_BATCH}": time_onnx(
+            onnx_policy, obs, batch=ONNX_BATCH, calls=max(calls // 100, 1)
+        ),
+    }  # fmt: skip
+
+
+def machine_card(compiler: str) -> dict[str, Any]:
+    """Where the figures were measured."""
+    try:
+        load = [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        load = None
+    return {
+        "cpu": cpu_model(),
+        "compiler": compiler_version(compiler),
+        "system": f"{platform.system()} {platform.release()} {platform.machine()}",
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "onnxruntime": version("onnxruntime"),
+        "onnx": version("onnx"),
+        "load_average": load,
+    }
+
+
+# Export -------------------------------------------------------------------------------------
+
+
+def export_run(
+    run_dir: str | Path | None = None,
+    *,
+    ckpt: str = "best",
+    controller: str | Path | None = None,
+    out_dir: str | Path | None = None,
+    scenarios_dir: str | Path | None = None,
+    split: str = "test",
+    min_observations: int = 10_000,
+    tolerance: float = 1e-5,
+    timing_calls: int = 100_000,
+    compiler: str = "cc",
+) -> dict[str, Any]:
+    """Export the policy of ``run_dir``'s checkpoint ``ckpt`` (or of a ``controller`` file) and
+    return its card; see the module docstring for what is written.
+
+    Raises:
+        ConfigError: bad input (no such run, checkpoint or tool, another interface, a layer the
+            C generator does not know), before any work.
+        ExportError: the implementations differ by more than ``tolerance``; nothing written.
+    """
+    # Everything is checked before any work starts.
+    if (run_dir is None) == (controller is None):
+        raise ConfigError(
+            f"run_dir: set either run_dir=DIR (a training run) or controller=FILE, got "
+            f"run_dir={run_dir}, controller={controller}"
+        )
+    if controller is not None and out_dir is None:
+        raise ConfigError(f"out_dir: a controller export needs out_dir, got {out_dir}")
+    if split not in SPLITS:
+        raise ConfigError(f"split: unknown '{split}'; valid: {', '.join(SPLITS)}")
+    _check_tools()
+    compiler = find_compiler(compiler)
+    if controller is not None:
+        src = controller_source(Path(controller), out_dir, scenarios_dir)
+    else:
+        src = run_source(Path(run_dir), ckpt, out_dir, scenarios_dir)
+    scenarios = resolve_scenarios(src.cfg, src.scenarios_dir)
+    same_set = check_scenarios(scenarios, src.scenario_digest, False, f"recorded with {src.path}")
+    n = len(scenarios.split(split))
+    env = build_env(src.cfg, scenarios=scenarios, split=split, num_envs=n,
+                    scenario_order="sequential")  # fmt: skip
+    check_policy_fits(src.state, src.cfg, env, src.path)
+    actor = DeterministicActor.from_state(src.state)
+    actor.layers()  # a layer the C generator does not know fails here
+
+    # Observations from rollouts of the split, flown by the checkpoint's actor.
+    t0 = time.perf_counter()
+    flying = actor_from_state(src.state, env.drone_action_spec, "cpu", env.group)
+    obs, about = collect_observations(env, flying, observation_key(env.group), min_observations)
+    log.info("%d observations from rollouts of %d %s scenarios in %.1f s",
+             len(obs), n, split, time.perf_counter() - t0)  # fmt: skip
+
+    # The artifacts, in memory.
+    features = env.obs_fn.features()
+    model = onnx_bytes(actor)
+    header, source = c_sources(actor, describe_lines(src, env, features))
+
+    # Equivalence: torch, ONNX Runtime and C on every observation.
+    onnx_policy = OnnxPolicy(model, actor.obs_dim, actor.action_dim)
+    c_policy, diagnostics = build_library(header, source, actor.obs_dim, actor.action_dim, compiler)
+    if diagnostics:
+        log.warning("the compiler warned about policy.c: %s", diagnostics.splitlines()[0])
+    x = obs.numpy()
+    actions = {"torch": torch_actions(src.state, obs), "onnx": onnx_policy(x), "c": c_policy(x)}
+    diffs = max_differences(actions)
+    worst = max(diffs, key=diffs.get)
+    if diffs[worst] > tolerance:
+        raise ExportError(
+            f"export: {worst.replace('_vs_', ' and ')} differ by {diffs[worst]:.3g} on rollout "
+            f"observations, more than tolerance={tolerance:g}; nothing written"
+        )
+
+    # Timing on this machine, then the card; the artifacts are written first, the card (which
+    # names their hashes) last.
+    timing = measure_timing(header, source, onnx_policy, x, timing_calls, compiler)
+    files = {"policy.onnx": model, "policy.h": header.encode(), "policy.c": source.encode()}
+    card = {
+        "format_version": 1,
+        "source": {
+            **src.described,
+            "path": str(src.path),
+            "sha256": src.sha256,
+            "drone": src.cfg.drone.name,
+            "learner": src.cfg.drone.learner,
+            "scenario_digest": src.scenario_digest,
+        },
+        "interface": interface_card(src, env, actor, features),
+        "network": network_card(actor, src.state),
+        "files": {k: {"sha256": sha256_bytes(v), "bytes": len(v)} for k, v in files.items()},
+        "equivalence": {
+            "observations": {**about, "split": split, "scenarios": n,
+                             "scenario_digest": scenarios.digest,
+                             "scenario_digest_matches": same_set},
+            "max_abs_action_difference": diffs,
+            "tolerance": tolerance,
+        },
+        "timing": timing,
+        "machine": machine_card(compiler),
+    }  # fmt: skip
+    for name, data in files.items():
+        atomic_write_bytes(src.out_dir / name, data)
+    atomic_write_text(src.out_dir / "card.json", json.dumps(card, indent=2) + "\n")
+    log.info("wrote %s", src.out_dir)
+    return {**card, "out_dir": str(src.out_dir)}
+
+
+def export_from_config(cfg: DictConfig) -> list[str]:
+    """What ``export.py`` does with its config (conf/export.yaml); returns the lines to print."""
+    validate_export_config(cfg)
+    if cfg.threads is not None:
+        torch.set_num_threads(cfg.threads)
+    card = export_run(
+        cfg.run_dir,
+        ckpt=str(cfg.ckpt),
+        controller=cfg.controller,
+        out_dir=cfg.out_dir,
+        scenarios_dir=cfg.scenarios_dir,
+        split=cfg.split,
+        min_observations=cfg.min_observations,
+        tolerance=cfg.tolerance,
+        timing_calls=cfg.timing_calls,
+        compiler=cfg.compiler,
+    )
+    eq, t = card["equivalence"], card["timing"]
+    d = eq["max_abs_action_difference"]
+    batch = t[f"onnxruntime_per_batch_{ONNX_BATCH}"]
+    return [
+        f"max |action difference| on {eq['observations']['count']} rollout observations: "
+        f"torch-ONNX {d['torch_vs_onnx']:.2g}, torch-C {d['torch_vs_c']:.2g}, "
+        f"ONNX-C {d['onnx_vs_c']:.2g} (tolerance {eq['tolerance']:g})",
+        f"C call: median {t['c']['median_us']:.3f} us, p99 {t['c']['p99_us']:.3f} us, "
+        f"max {t['c']['max_us']:.1f} us over {t['c']['calls']} calls; ONNX Runtime: "
+        f"{t['onnxruntime_per_call']['median_us']:.1f} us per call, "
+        f"{batch['median_us']:.0f} us per batch of {ONNX_BATCH}",
+        f"wrote {', '.join(FILES)} to {card['out_dir']}",
+    ]

@@ -1,0 +1,361 @@
+"""Export: a trained policy leaves as ONNX and C99, verified against the torch actor on rollout
+observations, timed, and flown through the evaluator (``policy=onnx``, ``policy=c``)."""
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+import torch
+from omegaconf import OmegaConf
+from torch import nn
+
+from rlplat.agents import sac
+from rlplat.agents.checkpoint import actor_from_state, load_checkpoint, save_checkpoint
+from rlplat.agents.export import DeterministicActor, c_sources
+from rlplat.agents.native import C_FLAGS, OnnxPolicy, build_library
+from rlplat.agents.policies import SHIPPED_DEFENDER, shipped_path
+from rlplat.errors import ConfigError, ExportError
+from rlplat.eval.episodes import rollout_observations
+from rlplat.eval.tables import differing_outcomes
+from rlplat.experiment.config import compose_config
+from rlplat.experiment.evaluation import evaluate_run, load_run_config
+from rlplat.experiment.export import export_run, torch_actions
+from rlplat.experiment.factory import build_env
+from rlplat.experiment.schema import validate_evaluate_config, validate_export_config
+from rlplat.experiment.training import train
+from rlplat.io import sha256_bytes
+from rlplat.scenarios import ScenarioSet, ScenarioSpec, write_scenario_set
+
+ROOT = Path(__file__).resolve().parent.parent
+ARTIFACTS = ("policy.onnx", "policy.h", "policy.c")
+
+# A short pursuit (the attacker is fast and starts close) so that some episodes end early.
+SCENARIOS = (
+    "scenario.n_train=64",
+    "scenario.n_val=16",
+    "scenario.n_test=256",
+    "scenario.params.defender_max_speed.high=1.5",
+    "scenario.params.attacker_max_speed.low=4",
+    "scenario.params.attacker_dx.low=-15",
+    "scenario.params.attacker_dx.high=15",
+    "scenario.params.attacker_dy.low=-15",
+    "scenario.params.attacker_dy.high=15",
+    "scenario.params.attacker_dz.low=-5",
+    "scenario.params.attacker_dz.high=5",
+)
+# A run of a few seconds: small batches, small networks, episodes of 5 s.
+TINY = (
+    "algo.num_envs=4",
+    "algo.frames_per_batch=64",
+    "algo.init_random_frames=64",
+    "algo.batch_size=32",
+    "algo.utd_ratio=0.1",
+    "algo.actor_cells=[32,32]",
+    "algo.critic_cells=[32,32]",
+    "algo.compile=false",
+    "train.total_frames=256",
+    "train.eval_every_frames=128",
+    "train.progress=false",
+    "env.time_limit=5",
+)
+# Quick exports where the figures are not what a test checks.
+QUICK = {"min_observations": 1000, "timing_calls": 1000}
+
+
+def write_set(path: Path, *overrides: str) -> ScenarioSet:
+    cfg = compose_config("scenarios", ["out_dir=unused", *SCENARIOS, *overrides])
+    write_scenario_set(ScenarioSpec.from_dict(OmegaConf.to_container(cfg.scenario)), path)
+    return ScenarioSet.load(path)
+
+
+def tiny_run(scenarios: ScenarioSet, run_dir: Path, *overrides: str) -> Path:
+    cfg = compose_config("train", [*TINY, f"scenarios_dir={scenarios.path}", *overrides])
+    train(cfg, run_dir=run_dir)
+    return run_dir
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread(request):
+    """One torch thread unless the run asks for a count (``--torch-threads``): the networks
+    here are tiny, and on a CPU shared with other jobs two threads wait on each other (a small
+    layer then takes milliseconds instead of microseconds)."""
+    if request.config.getoption("--torch-threads", default=None) is not None:
+        yield
+        return
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def scenarios(tmp_path_factory) -> ScenarioSet:
+    return write_set(tmp_path_factory.mktemp("scenarios"))
+
+
+@pytest.fixture(scope="module")
+def run(scenarios, tmp_path_factory) -> Path:
+    return tiny_run(scenarios, tmp_path_factory.mktemp("run"))
+
+
+@pytest.fixture(scope="module")
+def exported(run) -> dict:
+    """The run's best checkpoint exported with the default figures (>= 10,000 observations,
+    100,000 timed C calls)."""
+    return export_run(run)
+
+
+# The export -------------------------------------------------------------------------------
+
+
+def test_export_writes_verified_artifacts_and_their_card(run, exported):
+    out = run / "export" / "best"
+    assert exported["out_dir"] == str(out)
+    card = json.loads((out / "card.json").read_text())
+    for name in ARTIFACTS:
+        assert card["files"][name]["sha256"] == sha256_bytes((out / name).read_bytes())
+    assert card["source"]["sha256"] == sha256_bytes((run / "checkpoints/best.pt").read_bytes())
+    assert (
+        card["source"]["scenario_digest"]
+        == json.loads((run / "summary.json").read_text())["scenario_digest"]
+    )
+    eq = card["equivalence"]
+    assert eq["observations"]["count"] >= 10_000 and eq["observations"]["split"] == "test"
+    assert eq["observations"]["deterministic_pass"] > 0 and eq["observations"]["scenarios"] == 256
+    diffs = eq["max_abs_action_difference"]
+    assert set(diffs) == {"torch_vs_onnx", "torch_vs_c", "onnx_vs_c"}
+    assert all(0 <= d <= 1e-5 for d in diffs.values()), diffs
+    c = card["timing"]["c"]
+    assert c["calls"] >= 100_000 and 0 < c["median_us"] <= c["p99_us"] <= c["max_us"]
+    assert c["max_over_median"] == pytest.approx(c["max_us"] / c["median_us"], rel=0.01)
+    assert 0 <= c["calls_over_3x_median"] < c["calls"] // 2
+    for key in ("onnxruntime_per_call", "onnxruntime_per_batch_1024"):
+        assert card["timing"][key]["median_us"] > 0
+    assert card["machine"]["cpu"] and card["machine"]["compiler"]
+    # The interface: what the C function reads, feature by feature.
+    obs = card["interface"]["observation"]
+    assert obs["name"] == "relative_state" and obs["dim"] == len(obs["features"]) == 9
+    assert obs["features"][0] == {"name": "v_own.x", "unit": "m/s", "scale": 5.0}
+    assert [layer["type"] for layer in card["network"]["layers"]] == [
+        "Linear", "ReLU", "Linear", "ReLU", "Linear",
+    ]  # fmt: skip
+    # The ONNX file passes the checker and takes any batch size.
+    model = onnx.load(str(out / "policy.onnx"))
+    onnx.checker.check_model(model, full_check=True)
+    assert model.graph.input[0].type.tensor_type.shape.dim[0].dim_param
+    # The C header declares exactly the API.
+    header = (out / "policy.h").read_text()
+    assert "#define RLPLAT_OBS_DIM  9" in header and "#define RLPLAT_ACT_DIM  3" in header
+    assert (
+        "void rlplat_policy(const float obs[RLPLAT_OBS_DIM], float action[RLPLAT_ACT_DIM]);"
+        in header
+    )
+
+
+def test_the_written_files_compute_the_torch_actions(run, exported, scenarios, tmp_path):
+    out = run / "export" / "best"
+    source = (out / "policy.c").read_text()
+    # Dependency-free C99: no heap, no header but libm's; compiles without a warning.
+    assert not any(word in source for word in ("malloc", "free(", "stdio", "stdlib"))
+    assert [line for line in source.splitlines() if line.startswith("#include")] == [
+        "#include <math.h>",
+        '#include "policy.h"',
+    ]
+    shutil.copy(out / "policy.h", tmp_path)
+    shutil.copy(out / "policy.c", tmp_path)
+    res = subprocess.run(
+        ["cc", *C_FLAGS, "-Werror", "-c", "policy.c", "-o", "policy.o"],
+        cwd=tmp_path, capture_output=True, text=True,
+    )  # fmt: skip
+    assert res.returncode == 0 and not res.stderr, res.stderr
+    # The files themselves, on the observations of the deterministic test-split rollout.
+    cfg = load_run_config(run)
+    env = build_env(cfg, scenarios=scenarios, split="test", num_envs=256,
+                    scenario_order="sequential")  # fmt: skip
+    state = load_checkpoint(run / "checkpoints" / "best.pt")
+    obs = rollout_observations(env, actor_from_state(state, env.drone_action_spec), "observation")
+    expected = torch_actions(state, obs)
+    header = (out / "policy.h").read_text()
+    c_policy, _ = build_library(header, source, 9, 3)
+    onnx_policy = OnnxPolicy((out / "policy.onnx").read_bytes(), 9, 3)
+    for got in (c_policy(obs.numpy()), onnx_policy(obs.numpy())):
+        assert got.shape == expected.shape and np.abs(got - expected).max() <= 1e-5
+    assert np.abs(expected).max() <= 1.0
+
+
+@pytest.mark.parametrize("policy", ["onnx", "c"])
+def test_the_artifacts_fly_the_evaluation_with_the_torch_outcomes(run, exported, policy):
+    ev = evaluate_run(run, policy=policy, plots=False)
+    s = ev.summary
+    assert ev.out_dir == run / "eval" / f"test-best-{policy}"
+    for name in ("episodes.csv", "summary.json", "report.md"):
+        assert (ev.out_dir / name).is_file()
+    assert s["scenarios"] == 256 and s["policy"] == policy and s["name"] == f"best-{policy}"
+    assert s["outcomes_differing_from_torch"] == 0 and s["differences_from_torch"] == []
+    assert s["capture_rate"] == s["torch_capture_rate"]
+    assert (
+        "outcomes differing from the torch policy on the same scenarios: **0**,"
+        in (ev.out_dir / "report.md").read_text()
+    )
+
+
+def test_outcome_differences_are_listed_by_scenario_id():
+    rows = [
+        {"scenario_id": "a", "captured": True, "grounded": False, "steps": 40},
+        {"scenario_id": "b", "captured": False, "grounded": False, "steps": 100},
+    ]
+    other = [dict(rows[0]), {**rows[1], "steps": 99}]
+    assert differing_outcomes(rows, [dict(r) for r in rows]) == []
+    assert differing_outcomes(rows, other) == [
+        {
+            "scenario_id": "b",
+            "outcome": {"captured": False, "grounded": False, "steps": 100},
+            "reference": {"captured": False, "grounded": False, "steps": 99},
+        }
+    ]
+    with pytest.raises(ValueError):
+        differing_outcomes(rows, other[::-1])
+
+
+def test_a_second_export_through_the_cli_is_byte_identical(run, exported, tmp_path):
+    out = tmp_path / "again"
+    res = subprocess.run(
+        [sys.executable, str(ROOT / "export.py"), f"run_dir={run}", f"out_dir={out}",
+         "min_observations=1", "timing_calls=1000", f"threads={torch.get_num_threads()}"],
+        capture_output=True, text=True, cwd=tmp_path, timeout=300,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "max |action difference|" in res.stdout and str(out) in res.stdout
+    for name in ARTIFACTS:
+        assert (out / name).read_bytes() == (run / "export" / "best" / name).read_bytes(), name
+    assert sorted(p.name for p in out.iterdir()) == sorted([*ARTIFACTS, "card.json"])
+
+
+# Bad input --------------------------------------------------------------------------------
+
+
+def _one_line(excinfo) -> str:
+    message = str(excinfo.value)
+    assert "\n" not in message
+    return message
+
+
+def test_bad_input_is_one_line_and_writes_nothing(run, tmp_path, monkeypatch):
+    out = tmp_path / "out"
+    state = load_checkpoint(run / "checkpoints" / "best.pt")
+    with pytest.raises(ConfigError) as e:
+        export_run(run, ckpt=str(tmp_path / "missing.pt"), out_dir=out)
+    assert _one_line(e).startswith("ckpt: no checkpoint at")
+    empty = tmp_path / "run-without-checkpoints"
+    empty.mkdir()
+    shutil.copy(run / "config.yaml", empty)
+    with pytest.raises(ConfigError, match="ckpt: no checkpoint at .*best.pt"):
+        export_run(empty)
+    # A checkpoint of another interface: a network of the absolute observation (R^12).
+    other = dict(state, config={**state["config"], "observation": {"name": "absolute"}})
+    other["interface"] = {**state["interface"], "observation.name": "absolute"}
+    net = sac.NetSpec(**{**_net(state), "obs_dim": 12, "obs_scale": (50.0,) * 6 + (5.0,) * 6})
+    other["net"] = {**state["net"], "obs_dim": 12, "obs_scale": list(net.obs_scale)}
+    other["actor"] = sac.make_actor(net, _spec()).state_dict()
+    save_checkpoint(tmp_path / "other.pt", other)
+    with pytest.raises(ConfigError) as e:
+        export_run(run, ckpt=str(tmp_path / "other.pt"), out_dir=out)
+    assert "obs_dim=12" in _one_line(e)
+    # A layer the C generator does not know.
+    monkeypatch.setitem(sac.ACTIVATIONS, "silu", nn.SiLU)
+    silu = dict(state, net={**state["net"], "activation": "silu"})
+    silu["actor"] = sac.make_actor(sac.NetSpec(**{**_net(state), "activation": "silu"}),
+                                   _spec()).state_dict()  # fmt: skip
+    save_checkpoint(tmp_path / "silu.pt", silu)
+    with pytest.raises(ConfigError) as e:
+        export_run(run, ckpt=str(tmp_path / "silu.pt"), out_dir=out)
+    assert _one_line(e) == (
+        "export: actor layer 1 is SiLU, which the C generator does not know; it supports "
+        "Linear, ReLU, Tanh, ELU"
+    )
+    with pytest.raises(ConfigError) as e:
+        export_run(run, out_dir=out, compiler="no-such-cc")
+    assert _one_line(e).startswith("compiler: no C compiler 'no-such-cc' on PATH")
+    assert not out.exists()
+
+
+def _net(state: dict) -> dict:
+    return {k: tuple(v) if isinstance(v, list) else v for k, v in state["net"].items()}
+
+
+def _spec():
+    from torchrl.data import Bounded
+
+    return Bounded(-1.0, 1.0, shape=(3,))
+
+
+def test_implementations_that_differ_fail_the_export_and_write_nothing(run, tmp_path):
+    with pytest.raises(ExportError) as e:
+        export_run(run, out_dir=tmp_path / "out", tolerance=1e-12, **QUICK)
+    assert "tolerance=1e-12; nothing written" in _one_line(e)
+    assert not (tmp_path / "out").exists()
+
+
+def test_configs_name_the_offending_field():
+    def check(*overrides):
+        validate_export_config(compose_config("export", list(overrides)))
+
+    check("run_dir=runs/x")
+    check("controller=rlplat/agents/weights/defender_v1.pt", "out_dir=x")
+    with pytest.raises(ConfigError, match="^run_dir: set run_dir=DIR"):
+        check()
+    with pytest.raises(ConfigError, match="^out_dir: a controller export needs out_dir"):
+        check("controller=x.pt")
+    with pytest.raises(ConfigError, match="^tolerance: must be a finite number > 0"):
+        check("run_dir=x", "tolerance=0")
+    validate_evaluate_config(compose_config("evaluate", ["run_dir=x", "policy=c", "ckpt=last"]))
+
+
+def test_evaluating_an_artifact_needs_its_export_as_written(run, exported, tmp_path):
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy, ignore=shutil.ignore_patterns("eval", "export"))
+    with pytest.raises(ConfigError) as e:
+        evaluate_run(copy, policy="onnx", ckpt="last")
+    assert _one_line(e).endswith(f"run `python export.py run_dir={copy} ckpt=last` first")
+    shutil.copytree(run / "export", copy / "export")
+    source = copy / "export" / "best" / "policy.c"
+    source.write_text(source.read_text().replace("1.20000005f", "1.0f"))
+    with pytest.raises(ConfigError, match="policy.c is missing or not the file the card names"):
+        evaluate_run(copy, policy="c")
+    assert not (copy / "eval").exists()
+
+
+# Every learner ----------------------------------------------------------------------------
+
+
+def test_the_shipped_defender_network_exports(scenarios, tmp_path):
+    path = shipped_path(SHIPPED_DEFENDER)
+    out = tmp_path / "defender"
+    card = export_run(controller=path, out_dir=out, scenarios_dir=scenarios.path, **QUICK)
+    assert card["source"]["sha256"] == sha256_bytes(path.read_bytes())
+    assert card["source"]["learner"] == "defender"
+    assert card["interface"]["observation"]["name"] == "route_state"
+    assert all(d <= 1e-5 for d in card["equivalence"]["max_abs_action_difference"].values())
+    assert "#define RLPLAT_OBS_DIM  12" in (out / "policy.h").read_text()
+    # The C file computes the shipped controller's own actions (NetworkController's formula).
+    actor = DeterministicActor.from_state(load_checkpoint(path))
+    header, source = c_sources(actor)
+    assert source == (out / "policy.c").read_text()
+    x = torch.randn(256, 12) * 10
+    c_policy, _ = build_library((out / "policy.h").read_text(), source, 12, 3)
+    assert np.abs(c_policy(x.numpy()) - actor(x).numpy()).max() <= 1e-5
+
+
+def test_a_team_run_exports_and_flies_one_call_per_drone(tmp_path):
+    team_set = write_set(tmp_path / "scenarios", "scenario.attackers=2", "scenario.n_test=32")
+    run = tiny_run(team_set, tmp_path / "run")
+    card = export_run(run, **QUICK)
+    assert card["interface"]["team"]["drones_sharing_the_policy"] == 2
+    assert all(d <= 1e-5 for d in card["equivalence"]["max_abs_action_difference"].values())
+    ev = evaluate_run(run, policy="c", plots=False)
+    assert ev.summary["attackers"] == 2 and ev.summary["outcomes_differing_from_torch"] == 0
