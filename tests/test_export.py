@@ -11,7 +11,6 @@ import numpy as np
 import onnx
 import pytest
 import torch
-from omegaconf import OmegaConf
 from torch import nn
 
 from rlplat.agents import sac
@@ -29,54 +28,34 @@ from rlplat.experiment.factory import build_env
 from rlplat.experiment.schema import validate_evaluate_config, validate_export_config
 from rlplat.experiment.training import train
 from rlplat.io import sha256_bytes
-from rlplat.scenarios import ScenarioSet, ScenarioSpec, write_scenario_set
+from rlplat.scenarios import ScenarioSet
 
 ROOT = Path(__file__).resolve().parent.parent
 ARTIFACTS = ("policy.onnx", "policy.h", "policy.c")
 
-# A short pursuit (the attacker is fast and starts close) so that some episodes end early.
-SCENARIOS = (
-    "scenario.n_train=64",
-    "scenario.n_val=16",
-    "scenario.n_test=256",
-    "scenario.params.defender_max_speed.high=1.5",
-    "scenario.params.attacker_max_speed.low=4",
-    "scenario.params.attacker_dx.low=-15",
-    "scenario.params.attacker_dx.high=15",
-    "scenario.params.attacker_dy.low=-15",
-    "scenario.params.attacker_dy.high=15",
-    "scenario.params.attacker_dz.low=-5",
-    "scenario.params.attacker_dz.high=5",
-)
-# A run of a few seconds: small batches, small networks, episodes of 5 s.
-TINY = (
-    "algo.num_envs=4",
-    "algo.frames_per_batch=64",
-    "algo.init_random_frames=64",
-    "algo.batch_size=32",
-    "algo.utd_ratio=0.1",
-    "algo.actor_cells=[32,32]",
-    "algo.critic_cells=[32,32]",
-    "algo.compile=false",
-    "train.total_frames=256",
-    "train.eval_every_frames=128",
-    "train.progress=false",
-    "env.time_limit=5",
-)
+# A short pursuit (the attacker is fast and starts close) so that some episodes end early, and
+# a run of a few seconds with episodes of 5 s: the suite's shared settings (conftest), resized.
+SIZES = ("scenario.n_train=64", "scenario.n_val=16", "scenario.n_test=256")
 # Quick exports where the figures are not what a test checks.
 QUICK = {"min_observations": 1000, "timing_calls": 1000}
 
 
-def write_set(path: Path, *overrides: str) -> ScenarioSet:
-    cfg = compose_config("scenarios", ["out_dir=unused", *SCENARIOS, *overrides])
-    write_scenario_set(ScenarioSpec.from_dict(OmegaConf.to_container(cfg.scenario)), path)
-    return ScenarioSet.load(path)
+@pytest.fixture(scope="module")
+def write_set(write_small_set, easy_pursuit):
+    """write_set(path, *overrides) -> ScenarioSet: the short pursuit, 256 test scenarios."""
+    return lambda path, *overrides: write_small_set(path, *easy_pursuit, *SIZES, *overrides)
 
 
-def tiny_run(scenarios: ScenarioSet, run_dir: Path, *overrides: str) -> Path:
-    cfg = compose_config("train", [*TINY, f"scenarios_dir={scenarios.path}", *overrides])
-    train(cfg, run_dir=run_dir)
-    return run_dir
+@pytest.fixture(scope="module")
+def short_run(tiny):
+    """short_run(scenarios, run_dir, *overrides) -> run_dir: a tiny run, episodes of 5 s."""
+
+    def run(scenarios: ScenarioSet, run_dir: Path, *overrides: str) -> Path:
+        overrides = (*tiny, "env.time_limit=5", f"scenarios_dir={scenarios.path}", *overrides)
+        train(compose_config("train", list(overrides)), run_dir=run_dir)
+        return run_dir
+
+    return run
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -94,13 +73,13 @@ def one_thread(request):
 
 
 @pytest.fixture(scope="module")
-def scenarios(tmp_path_factory) -> ScenarioSet:
+def scenarios(tmp_path_factory, write_set) -> ScenarioSet:
     return write_set(tmp_path_factory.mktemp("scenarios"))
 
 
 @pytest.fixture(scope="module")
-def run(scenarios, tmp_path_factory) -> Path:
-    return tiny_run(scenarios, tmp_path_factory.mktemp("run"))
+def run(scenarios, tmp_path_factory, short_run) -> Path:
+    return short_run(scenarios, tmp_path_factory.mktemp("run"))
 
 
 @pytest.fixture(scope="module")
@@ -351,9 +330,9 @@ def test_the_shipped_defender_network_exports(scenarios, tmp_path):
     assert np.abs(c_policy(x.numpy()) - actor(x).numpy()).max() <= 1e-5
 
 
-def test_a_team_run_exports_and_flies_one_call_per_drone(tmp_path):
+def test_a_team_run_exports_and_flies_one_call_per_drone(tmp_path, write_set, short_run):
     team_set = write_set(tmp_path / "scenarios", "scenario.attackers=2", "scenario.n_test=32")
-    run = tiny_run(team_set, tmp_path / "run")
+    run = short_run(team_set, tmp_path / "run")
     card = export_run(run, **QUICK)
     assert card["interface"]["team"]["drones_sharing_the_policy"] == 2
     assert all(d <= 1e-5 for d in card["equivalence"]["max_abs_action_difference"].values())
