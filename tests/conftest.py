@@ -3,7 +3,7 @@
 ``--torch-threads N`` runs the suite, and every command-line tool it starts in a subprocess,
 with N torch CPU threads. Which CPU kernels torch picks is set before torch is imported, by the
 environment variable ``ATEN_CPU_CAPABILITY`` (e.g. ``avx2`` or ``default``), which the
-subprocesses inherit as they are.
+subprocesses inherit as they are; torch.compile's on-disk cache is kept apart per capability.
 """
 
 import os
@@ -71,6 +71,17 @@ def pytest_addoption(parser):
 
 
 def pytest_configure(config):
+    # torch.compile keeps what it compiled on disk for later processes, and that cache does not
+    # tell CPU capabilities apart: code generated for AVX512 and loaded by a process started with
+    # ATEN_CPU_CAPABILITY=avx2 crashes or computes NaN, code generated for avx2 fails to build
+    # under =default. So one cache per capability, unless TORCHINDUCTOR_CACHE_DIR names another
+    # directory than torch's default (importing tensordict sets it to the default); the
+    # subprocesses inherit it.
+    from torch._inductor.runtime.cache_dir_utils import default_cache_dir
+
+    if os.environ.get("TORCHINDUCTOR_CACHE_DIR", default_cache_dir()) == default_cache_dir():
+        capability = torch.backends.cpu.get_cpu_capability().lower()
+        os.environ["TORCHINDUCTOR_CACHE_DIR"] = f"{default_cache_dir()}_{capability}"
     threads = config.getoption("--torch-threads")
     if threads is None:
         return
@@ -86,7 +97,8 @@ def pytest_report_header(config):
     return (
         f"torch {torch.__version__}: {torch.get_num_threads()} CPU threads, "
         f"CPU capability {torch.backends.cpu.get_cpu_capability()} "
-        f"(ATEN_CPU_CAPABILITY={os.environ.get('ATEN_CPU_CAPABILITY', 'unset')})"
+        f"(ATEN_CPU_CAPABILITY={os.environ.get('ATEN_CPU_CAPABILITY', 'unset')}), "
+        f"compiled code cached in {os.environ.get('TORCHINDUCTOR_CACHE_DIR')}"
     )
 
 
