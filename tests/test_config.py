@@ -194,7 +194,7 @@ BAD_EVALUATE = [
     (["run_dir=r", "speed_ratio_bins=[]"], "speed_ratio_bins", "[]"),
     (["run_dir=r", "speed_ratio_bins=[0,1]"], "speed_ratio_bins", "[0, 1]"),
     (["run_dir=r", "speed_ratio_bins=[1,nan]"], "speed_ratio_bins", "nan"),
-    (["run_dir=r", "policy=magic"], "policy", "'magic'; valid: checkpoint, pure_pursuit"),
+    (["run_dir=r", "policy=magic"], "policy", "'magic'; valid: checkpoint, onnx, c, pure_pursuit"),
     (["run_dir=r", "split=holdout"], "split", "'holdout'; valid: train, val, test"),
     (["run_dir=r", "threads=0"], "threads", "0"),
     (["run_dir=r", "device=gpu"], "device", "'gpu'"),
