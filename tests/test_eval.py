@@ -248,7 +248,8 @@ def test_last_checkpoint_and_a_path(trained_run):
         ({"ckpt": "middle"}, r"ckpt: no checkpoint at middle \(best or last, or the path of a"),
         (
             {"policy": "lqr"},
-            r"policy: unknown 'lqr'; valid: checkpoint, onnx, c, pure_pursuit, proportional_navigation",
+            r"policy: unknown 'lqr'; valid: checkpoint, onnx, c, pure_pursuit, "
+            r"proportional_navigation",
         ),
         ({"split": "holdout"}, r"split: unknown 'holdout'; valid: train, val, test"),
         ({"trajectories": -1}, r"trajectories: must be an integer >= 0, got -1"),
