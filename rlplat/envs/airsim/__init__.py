@@ -1,0 +1,28 @@
+"""AirSim backend: fly rlplat's drones in an AirSim-protocol simulator (AirSim, Cosys-AirSim).
+
+- ``frames``: ENU (rlplat) <-> NED (AirSim) and each vehicle's spawn-relative frame, converted
+  in this one place.
+- ``settings``: vehicle names and the ``settings.json`` a simulator is started with.
+
+Nothing here imports an AirSim client library: the package imports without the ``airsim`` extra.
+"""
+
+from rlplat.envs.airsim.frames import (
+    enu_to_ned,
+    local_to_world,
+    ned_to_enu,
+    spawn_offsets,
+    world_to_local,
+)
+from rlplat.envs.airsim.settings import make_settings, vehicle_names, write_settings
+
+__all__ = [
+    "enu_to_ned",
+    "local_to_world",
+    "make_settings",
+    "ned_to_enu",
+    "spawn_offsets",
+    "vehicle_names",
+    "world_to_local",
+    "write_settings",
+]
