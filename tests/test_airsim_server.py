@@ -184,6 +184,18 @@ def test_conformance_continue_for_time_counts_wall_seconds_times_clock_speed(eve
         c.client.close()
 
 
+def test_conformance_realtime_continue_takes_its_wall_time(event_loop_per_test):
+    with TestServer({**SETTINGS, "ClockSpeed": 2.0}, realtime=True) as srv:
+        c = connect(srv.port)
+        c.simPause(True)
+        t0, w0 = c.getMultirotorState("Attacker").timestamp, time.monotonic()
+        c.simContinueForTime(0.2)  # 0.2 wall s = 0.4 sim s
+        wall = time.monotonic() - w0
+        assert c.getMultirotorState("Attacker").timestamp - t0 == 4 * NS // 10
+        assert 0.19 < wall < 1.0 and c.simIsPause() is True
+        c.client.close()
+
+
 def test_conformance_unpaused_clock_follows_the_wall_clock(client):
     t0, w0 = client.getMultirotorState("Attacker").timestamp, time.monotonic()
     time.sleep(0.3)
@@ -418,3 +430,27 @@ def test_world_flies_the_embedded_velocity_model():
         there = embedded.position[0, 0].tolist()
         gap = max(gap, *(abs(a - b) for a, b in zip(here, there, strict=True)))
     assert gap < 1e-3
+
+
+def test_recording_keeps_every_call_and_the_state_after_each_continue(server, client, tmp_path):
+    from rlplat.envs.airsim.testserver import write_recording
+
+    ready(client, "Attacker")
+    server.start_recording()
+    client.moveByVelocityAsync(1.0, 0.0, -1.0, 0.5, vehicle_name="Attacker")
+    client.simContinueForTime(0.1)
+    client.simContinueForTime(0.1)
+    records = server.take_recording()
+    calls = [r for r in records if "call" in r]
+    states = [r for r in records if "vehicles" in r]
+    expected = ["moveByVelocity", "simContinueForTime", "simContinueForTime"]
+    assert [r["call"] for r in calls] == expected
+    assert calls[0]["params"][:4] == [1.0, 0.0, -1.0, 0.5] and calls[0]["params"][6] == "Attacker"
+    assert len(states) == 2 and states[1]["t_ns"] - states[0]["t_ns"] == NS // 10
+    assert (
+        states[1]["vehicles"]["Attacker"]["position"]
+        == server.snapshot()["vehicles"]["Attacker"]["position"]
+    )
+    assert server.take_recording() == []  # recording stopped
+    path = write_recording(tmp_path / "run.jsonl", records)
+    assert [json.loads(line) for line in path.read_text().splitlines()] == records

@@ -73,18 +73,16 @@ class Physics:
     collision_radius: float = 0.5
 
     def __post_init__(self) -> None:
-        for name in ("tau_xy", "tau_z", "a_xy_max", "a_up_max", "a_down_max", "mass"):
-            _require(name, getattr(self, name) > 0, "> 0")
-        for name in ("physics_dt", "hold_gain", "hold_max_speed", "collision_radius"):
-            _require(name, getattr(self, name) > 0, "> 0")
-        for name in ("drag_xy", "drag_z", "hover_after_s"):
-            _require(name, getattr(self, name) >= 0, ">= 0")
-        _require("physics_dt", round(self.physics_dt * 1e9) >= 1000, ">= 1 microsecond")
-
-
-def _require(name: str, ok: bool, what: str) -> None:
-    if not ok:
-        raise ConfigError(f"{name} must be {what}")
+        positive = ("tau_xy", "tau_z", "a_xy_max", "a_up_max", "a_down_max", "mass", "physics_dt")
+        positive += ("hold_gain", "hold_max_speed", "collision_radius")
+        for name in (*positive, "drag_xy", "drag_z", "hover_after_s"):
+            value, strict = getattr(self, name), name in positive
+            number = isinstance(value, (int, float)) and not isinstance(value, bool)
+            if not (number and math.isfinite(value) and (value > 0 if strict else value >= 0)):
+                bound = "> 0" if strict else ">= 0"
+                raise ConfigError(f"{name} must be a finite number {bound}, got {value!r}")
+        if round(self.physics_dt * 1e9) < 1000:
+            raise ConfigError(f"physics_dt must be >= 1e-6 s, got {self.physics_dt!r}")
 
 
 @dataclass
@@ -145,6 +143,7 @@ class SimWorld:
         self.physics = physics
         self.t_ns = int(start_ns)
         self.dt_ns = round(physics.physics_dt * 1e9)
+        self._cache: dict[float, tuple[tuple[float, ...], ...]] = {}
 
     # Commands ---------------------------------------------------------------------------------
 
@@ -269,21 +268,31 @@ class SimWorld:
         cap = ph.hold_max_speed
         return [max(-cap, min(cap, ph.hold_gain * (hold[i] - veh.p[i]))) for i in range(3)]
 
+    def _constants(self, dt: float) -> tuple[tuple[float, ...], ...]:
+        """Per-axis (gain, dv low, dv high, drag factor) of a sub-step of ``dt`` s (cached)."""
+        cached = self._cache.get(dt)
+        if cached is None:
+            ph = self.physics
+            taus = (ph.tau_xy, ph.tau_xy, ph.tau_z)
+            lows = (-ph.a_xy_max, -ph.a_xy_max, -ph.a_up_max)  # NED: up is -z
+            highs = (ph.a_xy_max, ph.a_xy_max, ph.a_down_max)
+            drags = (ph.drag_xy, ph.drag_xy, ph.drag_z)
+            cached = tuple(
+                (-math.expm1(-dt / taus[i]), lows[i] * dt, highs[i] * dt, drags[i] / ph.mass * dt)
+                for i in range(3)
+            )
+            if len(self._cache) < 8:  # the full step and a few remainders
+                self._cache[dt] = cached
+        return cached
+
     def _integrate(self, veh: Vehicle, goal: Sequence[float], dt: float) -> None:
-        ph = self.physics
         p, v = veh.p, veh.v
         half = 0.5 * dt
         old = list(v)
-        taus = (ph.tau_xy, ph.tau_xy, ph.tau_z)
-        lows = (-ph.a_xy_max * dt, -ph.a_xy_max * dt, -ph.a_up_max * dt)  # NED: up is -z
-        highs = (ph.a_xy_max * dt, ph.a_xy_max * dt, ph.a_down_max * dt)
-        drags = (ph.drag_xy, ph.drag_xy, ph.drag_z)
-        for i in range(3):
+        for i, (gain, low, high, drag) in enumerate(self._constants(dt)):
             p[i] += v[i] * half
-            dv = (goal[i] - v[i]) * -math.expm1(-dt / taus[i])
-            dv = min(max(dv, lows[i]), highs[i])
-            dv -= drags[i] / ph.mass * dt * v[i] * abs(v[i])
-            v[i] += dv
+            dv = min(max((goal[i] - v[i]) * gain, low), high)
+            v[i] += dv - drag * v[i] * abs(v[i])
             p[i] += v[i] * half
         if p[2] >= 0.0:  # on or below the ground: back on it, no downward velocity
             if p[2] > 0.0 and v[2] > 0.0:

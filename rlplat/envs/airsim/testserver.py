@@ -66,6 +66,7 @@ import msgpack
 from rlplat.cli import exit_on_error
 from rlplat.envs.airsim.simworld import Physics, SimWorld, Vehicle
 from rlplat.errors import ConfigError
+from rlplat.io import atomic_write_text
 
 log = logging.getLogger(__name__)
 
@@ -317,8 +318,13 @@ class TestServer:
         self._call(lambda: setattr(self, "recording", []))
 
     def take_recording(self) -> list[dict[str, Any]]:
-        """The records since ``start_recording()`` (and stop recording): ``{"t_ns", "call",
-        "params"}`` per call, ``{"t_ns", "state": snapshot vehicles}`` after each continue."""
+        """The records since ``start_recording()``, in order, and stop recording.
+
+        Returns:
+            ``{"t_ns", "call", "params"}`` for each call received (sim time when it arrived) and
+            ``{"t_ns", "paused", "vehicles"}`` (as :meth:`snapshot`) after each continue: the
+            commands and world states of a lock-step run, for replay or calibration.
+        """
 
         def take():
             out, self.recording = self.recording or [], None
@@ -465,7 +471,7 @@ class TestServer:
                 self._continuing = False
                 self._set_paused(True)
             if self.recording is not None:
-                self.recording.append({"t_ns": self.world.t_ns, **self._snapshot()})
+                self.recording.append(self._snapshot())
 
     # Connections ------------------------------------------------------------------------------
 
@@ -716,6 +722,13 @@ def main(argv: Sequence[str] | None = None, settings: Mapping[str, Any] | None =
         realtime=args.realtime,
     )
     return serve_forever(server)
+
+
+def write_recording(path: str | Path, records: Sequence[Mapping[str, Any]]) -> Path:
+    """Write ``records`` (from :meth:`TestServer.take_recording`) as JSON lines, atomically."""
+    path = Path(path)
+    atomic_write_text(path, "".join(json.dumps(r, allow_nan=False) + "\n" for r in records))
+    return path
 
 
 def serve_forever(server: TestServer) -> int:
