@@ -1,0 +1,162 @@
+"""Frame conversions between rlplat and AirSim: the one place they happen.
+
+rlplat's world frame is ENU (x east, y north, z up). AirSim's is NED (x north, y east, z down),
+and every vehicle's positions are relative to its own spawn point (the ``X``/``Y``/``Z`` of its
+entry in ``settings.json``, NED metres). A point goes ENU world -> NED world -> NED local on the
+way out, and back on the way in:
+
+    p_local_ned = world_to_local(enu_to_ned(p_enu), spawn_ned)
+    p_enu = ned_to_enu(local_to_world(p_local_ned, spawn_ned))
+
+Velocities convert with ``enu_to_ned``/``ned_to_enu`` alone (spawn offsets are constant).
+
+Every function works on the last axis (size 3) and keeps the kind of its input: a torch Tensor
+gives a Tensor (same dtype and device), a numpy array an array, and a flat sequence of three
+numbers a tuple of three Python floats (what goes on the wire). Nested sequences give a float64
+array.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from rlplat.errors import ConfigError
+
+if TYPE_CHECKING:  # torch is not imported here: a tensor exists only if torch was imported
+    from torch import Tensor
+
+    Vector = Tensor | np.ndarray | Sequence[Any]
+
+__all__ = ["enu_to_ned", "local_to_world", "ned_to_enu", "spawn_offsets", "world_to_local"]
+
+
+def _is_tensor(x: Any) -> bool:
+    torch = sys.modules.get("torch")
+    return torch is not None and isinstance(x, torch.Tensor)
+
+
+def _swap(x: Any) -> Any:
+    """(a, b, c) -> (b, a, -c) on the last axis: ENU <-> NED (the map is its own inverse)."""
+    if _is_tensor(x):
+        import torch
+
+        if x.shape[-1:] != (3,):
+            raise ValueError(f"expected a last axis of size 3, got shape {tuple(x.shape)}")
+        return torch.stack((x[..., 1], x[..., 0], -x[..., 2]), dim=-1)
+    if not isinstance(x, np.ndarray) and _is_flat_triple(x):
+        a, b, c = (float(v) for v in x)
+        return (b, a, -c + 0.0)  # + 0.0: no -0.0
+    arr = np.asarray(x, dtype=None if isinstance(x, np.ndarray) else np.float64)
+    if arr.shape[-1:] != (3,):
+        raise ValueError(f"expected a last axis of size 3, got shape {arr.shape}")
+    return np.stack((arr[..., 1], arr[..., 0], -arr[..., 2]), axis=-1)
+
+
+def _is_flat_triple(x: Any) -> bool:
+    return (
+        isinstance(x, Sequence)
+        and not isinstance(x, str)
+        and len(x) == 3
+        and all(isinstance(v, (int, float, np.number)) and not isinstance(v, bool) for v in x)
+    )
+
+
+def enu_to_ned(x: Vector) -> Vector:
+    """ENU (x east, y north, z up) -> NED (x north, y east, z down): (x, y, z) -> (y, x, -z)."""
+    return _swap(x)
+
+
+def ned_to_enu(x: Vector) -> Vector:
+    """NED (x north, y east, z down) -> ENU (x east, y north, z up): (x, y, z) -> (y, x, -z)."""
+    return _swap(x)
+
+
+def _combine(p: Any, spawn: Any, sign: float) -> Any:
+    if _is_tensor(p):
+        import torch
+
+        s = torch.as_tensor(spawn, dtype=p.dtype, device=p.device)
+        if s.shape[-1:] != (3,) or p.shape[-1:] != (3,):
+            shapes = f"{tuple(p.shape)}, {tuple(s.shape)}"
+            raise ValueError(f"expected last axes of size 3, got {shapes}")
+        return p + sign * s
+    if not isinstance(p, np.ndarray) and _is_flat_triple(p) and _is_flat_triple(spawn):
+        return tuple(float(a) + sign * float(b) + 0.0 for a, b in zip(p, spawn, strict=True))
+    arr = np.asarray(p, dtype=None if isinstance(p, np.ndarray) else np.float64)
+    s = np.asarray(spawn, dtype=arr.dtype)
+    if s.shape[-1:] != (3,) or arr.shape[-1:] != (3,):
+        raise ValueError(f"expected last axes of size 3, got {arr.shape}, {s.shape}")
+    return arr + sign * s
+
+
+def world_to_local(p_ned_world: Vector, spawn_ned: Any) -> Vector:
+    """NED world position -> NED position relative to the vehicle's spawn point (p - spawn).
+
+    Args:
+        p_ned_world: (..., 3) metres NED, world frame.
+        spawn_ned: (..., 3) metres NED, the vehicle's spawn point (broadcast against p).
+    """
+    return _combine(p_ned_world, spawn_ned, -1.0)
+
+
+def local_to_world(p_ned_local: Vector, spawn_ned: Any) -> Vector:
+    """NED position relative to the vehicle's spawn point -> NED world position (p + spawn).
+
+    Args:
+        p_ned_local: (..., 3) metres NED, relative to the vehicle's spawn point.
+        spawn_ned: (..., 3) metres NED, the vehicle's spawn point (broadcast against p).
+    """
+    return _combine(p_ned_local, spawn_ned, 1.0)
+
+
+def spawn_offsets(
+    settings: Mapping[str, Any],
+    names: Sequence[str],
+    fallback: Mapping[str, Sequence[float]] | None = None,
+) -> dict[str, tuple[float, float, float]]:
+    """Spawn point of each named vehicle, NED metres, from a ``settings.json`` dict.
+
+    A vehicle's coordinate is ``Vehicles.<name>.X`` (``Y``, ``Z``) of the settings; one the
+    settings leave out is taken from ``fallback[name]`` when that has the vehicle, else 0. A name
+    that neither the settings nor the fallback has is an error listing the settings' vehicles.
+
+    Args:
+        settings: the parsed settings.json (e.g. ``json.loads`` of ``getSettingsString()``).
+        names: the vehicles wanted.
+        fallback: name -> (x, y, z) NED metres, for vehicles or coordinates the settings lack.
+
+    Returns:
+        name -> (x, y, z) Python floats, NED metres, in the order of ``names``.
+
+    Raises:
+        ConfigError: a name is in neither mapping, or a coordinate is not a number.
+    """
+    vehicles = settings.get("Vehicles") or {}
+    if not isinstance(vehicles, Mapping):
+        raise ConfigError(f"settings Vehicles must be an object, got {vehicles!r}")
+    fallback = fallback or {}
+    out = {}
+    for name in names:
+        entry, backup = vehicles.get(name), fallback.get(name)
+        if entry is None and backup is None:
+            have = ", ".join(vehicles) or "none"
+            raise ConfigError(
+                f"vehicle {name!r} is not in the simulator's settings (its vehicles: {have}) "
+                "and has no fallback spawn position"
+            )
+        if backup is not None and len(backup) != 3:
+            raise ConfigError(f"fallback spawn of {name!r} must be (x, y, z), got {backup!r}")
+        coords = []
+        for i, key in enumerate("XYZ"):
+            value = (entry or {}).get(key)
+            if value is None:
+                value = backup[i] if backup is not None else 0.0
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
+                raise ConfigError(f"Vehicles.{name}.{key} must be a number, got {value!r}")
+            coords.append(float(value) + 0.0)
+        out[name] = (coords[0], coords[1], coords[2])
+    return out
