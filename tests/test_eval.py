@@ -224,8 +224,10 @@ def test_compare_mode_flies_every_baseline_in_one_command(trained_run):
         "proportional_navigation",
     ]
     assert "| pure_pursuit | 16 |" in lines[3]
-    table, ceiling = (trained_run / "eval" / "compare-val.md").read_text().split(
-        "## Against the capture ceiling"
+    table, ceiling = (
+        (trained_run / "eval" / "compare-val.md")
+        .read_text()
+        .split("## Against the capture ceiling")
     )
     assert table.count("\n| ") == 4  # the header and one row per policy
     # the ceiling table: its header, the scenarios it covers, the ceiling, one row per policy
