@@ -65,7 +65,8 @@ def test_pure_pursuit_reference_captures_and_a_hover_does_not(scenarios):
     from rlplat.experiment.config import compose_config
     from rlplat.experiment.factory import build_env
 
-    cfg = compose_config("train", [f"scenarios_dir={scenarios.path}"])
+    # eq. 2's plain velocity action: a zero action hovers
+    cfg = compose_config("train", [f"scenarios_dir={scenarios.path}", "drone=attacker_v3"])
     env = build_env(
         cfg, scenarios=scenarios, split="val", num_envs=len(scenarios.split("val")),
         scenario_order="sequential",

@@ -151,7 +151,7 @@ BAD_TRAIN = [
     (["dynamics=quadrotor", "dynamics.max_rotor_thrust=2"], "dynamics.max_rotor_thrust", "2"),
     (["observation.position_scale=0"], "observation.position_scale", "0"),
     (["observation.name=lidar"], "observation.name", "'lidar'"),
-    (["+action.gain=2"], "action.gain", "unknown key"),
+    (["+action.knob=2"], "action.knob", "unknown key"),
     (["reward.distance_scale=0"], "reward.distance_scale", "0"),
     (["+reward.terms.bonus=1"], "reward.terms.bonus", "valid: capture"),
     (["~reward.terms"], "reward.terms", "missing"),
@@ -314,12 +314,15 @@ SAC_PAPER_KEPT = {
     "actor_cells": [64, 64],
     "critic_cells": [64, 64],
     "activation": "relu",
+    "actor_zero_mean": False,
+    "actor_init_std": None,
 }
 
 
 def test_sac_paper_is_sac_plus_its_changes():
-    sac = resolved("algo=sac")["algo"]
-    paper = resolved("algo=sac_paper")["algo"]
+    # attacker_v3 sets no algo value of its own (attacker_v4, the default, sets some)
+    sac = resolved("algo=sac", "drone=attacker_v3")["algo"]
+    paper = resolved("algo=sac_paper", "drone=attacker_v3")["algo"]
     assert paper == {**SAC_PAPER_CHANGES, **SAC_PAPER_KEPT}
     assert list(paper) == list(sac)  # same key order as before: composed from sac
     assert {k for k in sac if sac[k] != paper[k]} == set(SAC_PAPER_CHANGES)

@@ -168,7 +168,7 @@ def test_capture_threshold_uses_closest_approach():
 
 
 def test_capture_terminates_with_reward_and_true_final_observation(scenarios):
-    env = make_env(scenarios=scenarios, num_envs=16)
+    env = make_env("drone=attacker_v3", scenarios=scenarios, num_envs=16)  # eq. 1 and 2
     env.set_seed(0)
     td = env.rollout(900, pursue, break_when_any_done=False)
     nxt = td["next"]

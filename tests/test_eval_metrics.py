@@ -102,3 +102,33 @@ def test_pick_episodes_takes_fastest_captures_and_worst_misses():
     assert pick_episodes(caught, 3) == [(1, "best"), (0, "best"), (2, "worst")]  # slowest
     assert pick_episodes(rows[:1], 3) == [(0, "best")]
     assert pick_episodes(rows, 0) == []
+
+
+def test_pool_counts_every_episode_of_every_run(tmp_path):
+    import json
+
+    from rlplat.eval.pool import markdown, pooled_rows
+
+    def evaluation(run, name, policy, captured, times, bound):
+        out = tmp_path / run / "eval" / f"test-{name}"
+        out.mkdir(parents=True)
+        summary = {"policy": policy, "name": name, "drone": "attacker_v4"}
+        (out / "summary.json").write_text(json.dumps(summary))
+        rows = ["scenario_id,interceptable,captured,time_to_capture_s"]
+        cells = zip(captured, times, bound, strict=True)
+        rows += [f"s{i},{b},{c},{t}" for i, (c, t, b) in enumerate(cells)]
+        (out / "episodes.csv").write_text("\n".join(rows) + "\n")
+
+    bound = ["1", "0", ""]  # an intercept exists, none exists, not defined (nn defender)
+    evaluation("s0", "best", "checkpoint", [1, 0, 1], ["10", "", "20"], bound)
+    evaluation("s1", "best", "checkpoint", [1, 0, 0], ["30", "", ""], bound)
+    evaluation("s0", "proportional_navigation", "proportional_navigation", [1, 0, 0],
+               ["5", "", ""], bound)  # fmt: skip
+    rows = pooled_rows([tmp_path / "s0", tmp_path / "s1"])
+    learned, pn = rows
+    assert learned["policy"] == "attacker_v4 (best)" and learned["runs"] == 2
+    assert learned["episodes"] == 6 and learned["capture_rate"] == 3 / 6
+    assert learned["mean_time_to_capture_s"] == 20.0 and learned["median_time_to_capture_s"] == 20
+    assert learned["ceiling"] == 0.5 and learned["capture_rate_covered"] == 2 / 4
+    assert pn["episodes"] == 3 and pn["capture_rate"] == 1 / 3
+    assert "| attacker_v4 (best) | 2 | 6 | 0.500 [" in markdown(rows)

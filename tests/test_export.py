@@ -79,7 +79,8 @@ def scenarios(tmp_path_factory, write_set) -> ScenarioSet:
 
 @pytest.fixture(scope="module")
 def run(scenarios, tmp_path_factory, short_run) -> Path:
-    return short_run(scenarios, tmp_path_factory.mktemp("run"))
+    # The paper's interface (eq. 1, 2): the network's output is the velocity command.
+    return short_run(scenarios, tmp_path_factory.mktemp("run"), "drone=attacker_v3")
 
 
 @pytest.fixture(scope="module")
@@ -271,6 +272,23 @@ def _spec():
     from torchrl.data import Bounded
 
     return Bounded(-1.0, 1.0, shape=(3,))
+
+
+def test_a_guided_controller_exports_with_its_guidance(scenarios, tmp_path, short_run):
+    # The default attacker_v4 learns a correction to proportional navigation: the artifacts
+    # compute the correction, the card and header say what the command is, and the C
+    # controller flies the evaluation with the torch outcomes (the env adds the guidance).
+    run = short_run(scenarios, tmp_path / "run", "drone=attacker_v4")
+    export_run(run, ckpt="last", **QUICK)
+    out = run / "export" / "last"
+    card = json.loads((out / "card.json").read_text())
+    action = card["interface"]["action"]
+    assert action["name"] == "guided_velocity" and action["guidance"]["lead"] == 0.5
+    assert "correction to proportional navigation" in action["unit"]
+    assert card["interface"]["observation"]["dim"] == 10
+    assert "CORRECTION to proportional navigation" in (out / "policy.h").read_text()
+    ev = evaluate_run(run, policy="c", ckpt="last", plots=False)
+    assert ev.summary["outcomes_differing_from_torch"] == 0
 
 
 def test_implementations_that_differ_fail_the_export_and_write_nothing(run, tmp_path):

@@ -13,12 +13,13 @@ from rlplat.eval.episodes import evaluate
 from rlplat.scenarios import STRATEGIES
 
 GUIDED = "action=guided_velocity"
+PLAIN = "drone=attacker_v3"  # eq. 1 and 2: the plain velocity action
 
 
 def test_a_zero_correction_flies_proportional_navigation(scenarios):
     n = len(scenarios.split("val"))
-    plain = make_env(scenarios=scenarios, num_envs=n, split="val")
-    guided = make_env(GUIDED, scenarios=scenarios, num_envs=n, split="val")
+    plain = make_env(PLAIN, scenarios=scenarios, num_envs=n, split="val")
+    guided = make_env(PLAIN, GUIDED, scenarios=scenarios, num_envs=n, split="val")
     pn = make_scripted_policy("proportional_navigation", plain)
     a, b = plain.reset(), guided.reset()
     for _ in range(30):
@@ -42,8 +43,8 @@ def test_the_correction_moves_the_command_by_scale_times_the_action(scenarios):
 
 def test_a_scripted_policy_flies_its_own_commands_through_a_guided_action(scenarios):
     n = len(scenarios.split("val"))
-    plain = make_env(scenarios=scenarios, num_envs=n, split="val")
-    guided = make_env(GUIDED, scenarios=scenarios, num_envs=n, split="val")
+    plain = make_env(PLAIN, scenarios=scenarios, num_envs=n, split="val")
+    guided = make_env(PLAIN, GUIDED, scenarios=scenarios, num_envs=n, split="val")
     pp_plain = make_scripted_policy("pure_pursuit", plain)
     pp_guided = make_scripted_policy("pure_pursuit", guided)
     a, b = plain.reset(), guided.reset()
@@ -74,7 +75,7 @@ def test_pursuit_state_adds_the_own_maximum_speed(scenarios):
     names = [f["name"] for f in env.obs_fn.features()]
     assert names[3] == "max_speed_own" and env.obs_fn.features()[3]["unit"] == "m/s"
     torch.testing.assert_close(obs[:, 3], td["max_speed"][:, 0])
-    base = make_env(scenarios=scenarios, num_envs=5, split="val").reset()["observation"]
+    base = make_env(PLAIN, scenarios=scenarios, num_envs=5, split="val").reset()["observation"]
     torch.testing.assert_close(obs[:, [0, 1, 2, 4, 5, 6, 7, 8, 9]], base)
 
 
@@ -90,7 +91,7 @@ def _ceiling(env, dynamics_cfg=None):
 def test_no_policy_captures_where_the_ceiling_says_no_intercept_exists(tmp_path, write_small_set):
     scenarios = write_small_set(tmp_path, "scenario.n_test=96")
     n = len(scenarios.split("test"))
-    env = make_env(scenarios=scenarios, num_envs=n, split="test")
+    env = make_env(PLAIN, scenarios=scenarios, num_envs=n, split="test")
     ceiling = _ceiling(env)
     setpoints = env.scenarios["defender_strategy"][:, 0] == STRATEGIES.index("setpoints")
     assert torch.equal(ceiling.defined, setpoints)  # route-flying defenders only
@@ -122,5 +123,5 @@ def test_a_slow_attacker_cannot_catch_a_fast_defender_flying_away(tmp_path, writ
     rates = {}
     for name, s in (("slow", slow), ("fast", fast)):
         n = len(s.split("test"))
-        rates[name] = _ceiling(make_env(scenarios=s, num_envs=n, split="test")).rate
+        rates[name] = _ceiling(make_env(PLAIN, scenarios=s, num_envs=n, split="test")).rate
     assert rates["slow"] < 0.5 < rates["fast"] == 1.0
