@@ -3,9 +3,9 @@ circle.
 
 Layers, bottom to top: the shared base (errors, io, cli), scenarios, envs, agents, eval, and the
 wiring package experiment, the only code that reads a Hydra config. A module may import its
-own layer and those below it. Entry points sit above everything: the ``__main__`` modules and
-the package's lazy facade ``rlplat/__init__.py``. Imports inside functions count too (a lazy
-import is still a dependency).
+own layer and those below it. Entry points sit above everything: the ``__main__`` modules, the
+command-line module ``rlplat.airsim`` and the package's lazy facade ``rlplat/__init__.py``.
+Imports inside functions count too (a lazy import is still a dependency).
 """
 
 import ast
@@ -16,6 +16,7 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent / "rlplat"
 LAYERS = ("base", "scenarios", "envs", "agents", "eval", "experiment", "entry")
 BASE = ("rlplat.errors", "rlplat.io", "rlplat.cli")
+ENTRY = ("rlplat", "rlplat.airsim")
 
 
 def module_name(path: Path) -> str:
@@ -24,7 +25,7 @@ def module_name(path: Path) -> str:
 
 
 def layer(module: str) -> str:
-    if module == "rlplat" or module.endswith(".__main__"):
+    if module in ENTRY or module.endswith(".__main__"):
         return "entry"
     if module in BASE:
         return "base"

@@ -18,23 +18,32 @@ array.
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Mapping, Sequence
-from typing import Any, Union
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
-from torch import Tensor
 
 from rlplat.errors import ConfigError
 
-Vector = Union[Tensor, np.ndarray, Sequence[Any]]  # noqa: UP007 (a runtime alias)
+if TYPE_CHECKING:  # torch is not imported here: a tensor exists only if torch was imported
+    from torch import Tensor
+
+    Vector = Tensor | np.ndarray | Sequence[Any]
 
 __all__ = ["enu_to_ned", "local_to_world", "ned_to_enu", "spawn_offsets", "world_to_local"]
 
 
+def _is_tensor(x: Any) -> bool:
+    torch = sys.modules.get("torch")
+    return torch is not None and isinstance(x, torch.Tensor)
+
+
 def _swap(x: Any) -> Any:
     """(a, b, c) -> (b, a, -c) on the last axis: ENU <-> NED (the map is its own inverse)."""
-    if isinstance(x, Tensor):
+    if _is_tensor(x):
+        import torch
+
         if x.shape[-1:] != (3,):
             raise ValueError(f"expected a last axis of size 3, got shape {tuple(x.shape)}")
         return torch.stack((x[..., 1], x[..., 0], -x[..., 2]), dim=-1)
@@ -67,7 +76,9 @@ def ned_to_enu(x: Vector) -> Vector:
 
 
 def _combine(p: Any, spawn: Any, sign: float) -> Any:
-    if isinstance(p, Tensor):
+    if _is_tensor(p):
+        import torch
+
         s = torch.as_tensor(spawn, dtype=p.dtype, device=p.device)
         if s.shape[-1:] != (3,) or p.shape[-1:] != (3,):
             shapes = f"{tuple(p.shape)}, {tuple(s.shape)}"

@@ -1,0 +1,41 @@
+"""``python -m rlplat.airsim <verb> [...]``: the AirSim tools.
+
+Verbs:
+    settings out=PATH [overrides]   write settings.json for the team of the train config
+                                    (e.g. ``scenario=pursuit_2v1 dynamics=airsim``)
+    serve [--settings FILE] [--port P] [--clock-speed K] [--realtime] [overrides]
+                                    serve the loopback AirSim-protocol test server (for FILE,
+                                    else for the configured team) until Ctrl-C
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Sequence
+
+from rlplat.cli import exit_on_error
+
+VERBS = ("settings", "serve")
+
+
+@exit_on_error
+def main(argv: Sequence[str] | None = None) -> int:
+    args = list(sys.argv[1:] if argv is None else argv)
+    if not args or args[0] not in VERBS:
+        given = repr(args[0]) if args else "none"
+        print(
+            f"usage: python -m rlplat.airsim {{{','.join(VERBS)}}} ...; got {given}",
+            file=sys.stderr,
+        )
+        return 2
+    from rlplat.experiment import airsim_tools
+
+    verb, rest = args[0], args[1:]
+    if verb == "settings":
+        print(airsim_tools.settings_command(rest))
+        return 0
+    return airsim_tools.serve_command(rest)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
