@@ -26,6 +26,7 @@ from rlplat.envs.airsim.testserver import TestServer
 from rlplat.envs.dynamics import VelocityDynamics
 from rlplat.envs.parallel import WorkerFault
 from rlplat.errors import ConfigError
+from rlplat.experiment.evaluation import evaluate_run
 from tests.conftest import ROOT
 
 pytest.importorskip("cosysairsim")
@@ -344,6 +345,13 @@ def test_a_trained_checkpoint_is_evaluated_on_the_test_server_through_evaluate_p
     assert len(rows) == 1 + 16
     assert "capture rate" in res.stdout and "16 test scenarios" in res.stdout
     assert math.isfinite(summary["mean_return"])
+    assert "dynamics `airsim`" in (out / "report.md").read_text()
+    # Any other model swaps in the same way, here in-process.
+    swapped = evaluate_run(run_dir, dynamics={"name": "quadrotor"}, plots=False)
+    assert swapped.out_dir == run_dir / "eval" / "test-best-quadrotor"
+    assert swapped.summary["dynamics"] == "quadrotor" and len(swapped.rows) == 16
+    with pytest.raises(ConfigError, match=r"^dynamics.endpoints: 'nowhere' is not host:port"):
+        evaluate_run(run_dir, dynamics={"name": "airsim", "endpoints": ["nowhere"]})
 
 
 @pytest.mark.slow

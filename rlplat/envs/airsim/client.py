@@ -122,6 +122,7 @@ def _session_types():
 
     class Socket(tcp.ClientSocket):
         async def on_connect(self):
+            self._stream.set_nodelay(True)  # small requests go out at once (no Nagle delay)
             await self._transport.on_connect(self)
             await self.start_read(silent_errors=True)
 
