@@ -49,11 +49,18 @@ def test_registries_match_config_groups():
         cfg = OmegaConf.load(CONF / "reward" / f"{s}.yaml")
         Reward(**cfg)  # every term known, every key a constructor argument
         assert set(cfg.terms) <= set(REWARD_TERMS)
-    assert stems("drone") == {"attacker_v1", "attacker_v2", "attacker_v3", "defender_v1"}
+    assert stems("drone") == {
+        "attacker_v1",
+        "attacker_v2",
+        "attacker_v3",
+        "attacker_v4",
+        "defender_v1",
+    }
 
 
 @pytest.mark.parametrize(
-    ("drone", "dim"), [("attacker_v1", 12), ("attacker_v2", 3), ("attacker_v3", 9)]
+    ("drone", "dim"),
+    [("attacker_v1", 12), ("attacker_v2", 3), ("attacker_v3", 9), ("attacker_v4", 10)],
 )
 def test_drone_bundles_pick_their_observation_and_cli_wins(scenarios, drone, dim):
     env = make_env(f"drone={drone}", scenarios=scenarios.path, num_envs=2)

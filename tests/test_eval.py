@@ -224,7 +224,14 @@ def test_compare_mode_flies_every_baseline_in_one_command(trained_run):
         "proportional_navigation",
     ]
     assert "| pure_pursuit | 16 |" in lines[3]
-    assert (trained_run / "eval" / "compare-val.md").read_text().count("\n| ") == 4
+    table, ceiling = (
+        (trained_run / "eval" / "compare-val.md")
+        .read_text()
+        .split("## Against the capture ceiling")
+    )
+    assert table.count("\n| ") == 4  # the header and one row per policy
+    # the ceiling table: its header, the scenarios it covers, the ceiling, one row per policy
+    assert ceiling.count("\n| ") == 6 and "\n| proportional_navigation |" in ceiling
     assert not list((trained_run / "eval" / "val-best").glob("*.png"))  # plots=false
 
 

@@ -1,4 +1,5 @@
-"""The default SAC learns: an easy pursuit, a fixed bar, a few minutes of CPU."""
+"""Learning holds its bars: the paper's interface learns an easy pursuit from scratch, and the
+default keeps above pure pursuit where pure pursuit falls short, a few minutes of CPU each."""
 
 import pytest
 import torch
@@ -8,17 +9,18 @@ from rlplat.experiment.config import compose_config
 from rlplat.experiment.training import train
 from rlplat.scenarios import ScenarioSet, ScenarioSpec, write_scenario_set
 
-THRESHOLD = 0.6  # validation capture rate the default SAC must pass
+THRESHOLD = 0.6  # validation capture rate attacker_v3's SAC must pass on the easy pursuit
 
 
 @pytest.mark.slow
-def test_default_sac_learns_an_easy_pursuit(easy_pursuit, tmp_path, record_property):
+def test_sac_learns_an_easy_pursuit_from_scratch(easy_pursuit, tmp_path, record_property):
     # The easy pursuit (a slow defender, a fast attacker starting within 15 m), episodes of 20 s.
     spec_cfg = compose_config("scenarios", ["out_dir=unused", *easy_pursuit])
     write_scenario_set(ScenarioSpec.from_dict(OmegaConf.to_container(spec_cfg.scenario)), tmp_path)
     cfg = compose_config(
         "train",
         [
+            "drone=attacker_v3",  # the paper's interface, learning from a random actor
             f"scenarios_dir={tmp_path}",
             "env.time_limit=20",
             # The budget in frames only: a wall-clock budget trains less on a slower or busier
@@ -55,3 +57,66 @@ def _untrained(cfg, scenarios_dir) -> float:
     torch.manual_seed(cfg.seed)
     actor = make_actor(net_spec(env.obs_fn.scale, 3, cfg.algo), env.action_spec[0])
     return evaluate(env, actor).capture_rate
+
+
+# Where pure pursuit falls short and proportional navigation does not: an attacker about as fast
+# as the defender (2-3 against 2.5-3.5 m/s per axis), starting within 15 m, 20 s episodes. On
+# its 128 validation scenarios pure pursuit captures 0.57 and proportional navigation 0.81.
+CHASE = (
+    "scenario.n_train=512",
+    "scenario.n_val=128",
+    "scenario.n_test=128",
+    "scenario.params.defender_max_speed.low=2.5",
+    "scenario.params.defender_max_speed.high=3.5",
+    "scenario.params.attacker_max_speed.low=2",
+    "scenario.params.attacker_max_speed.high=3",
+    "scenario.params.attacker_dx.low=-15",
+    "scenario.params.attacker_dx.high=15",
+    "scenario.params.attacker_dy.low=-15",
+    "scenario.params.attacker_dy.high=15",
+    "scenario.params.attacker_dz.low=-5",
+    "scenario.params.attacker_dz.high=5",
+)
+BAR = 0.70  # between pure pursuit's level and proportional navigation's on that set
+
+
+@pytest.mark.slow
+def test_the_default_keeps_above_pure_pursuit_while_it_learns(tmp_path, record_property):
+    from rlplat.agents.policies import make_scripted_policy
+    from rlplat.eval.episodes import evaluate
+    from rlplat.eval.report import read_scalars
+    from rlplat.experiment.factory import build_env
+
+    spec_cfg = compose_config("scenarios", ["out_dir=unused", *CHASE])
+    write_scenario_set(ScenarioSpec.from_dict(OmegaConf.to_container(spec_cfg.scenario)), tmp_path)
+    cfg = compose_config(
+        "train",
+        [
+            f"scenarios_dir={tmp_path}",
+            "env.time_limit=20",
+            "train.max_minutes=null",  # frames only: the same learning on any machine
+            "train.total_frames=60000",
+            "train.eval_every_frames=12288",
+            "train.progress=false",
+            "algo.init_random_frames=8192",
+        ],
+    )
+    scenarios = ScenarioSet.load(tmp_path)
+    val = build_env(
+        cfg, scenarios=scenarios, split="val", num_envs=128, scenario_order="sequential"
+    )
+    pure_pursuit = evaluate(val, make_scripted_policy("pure_pursuit", val)).capture_rate
+    assert pure_pursuit < BAR - 0.05, "the set must separate pure pursuit from the bar"
+
+    summary = train(cfg, run_dir=tmp_path / "run")
+    curve = read_scalars(tmp_path / "run")["eval/capture_rate"]
+    learning = [rate for frames, rate in curve if frames > 8192]  # after the first update
+    record_property("pure_pursuit_val_capture_rate", pure_pursuit)
+    record_property("validation_curve", curve)
+    record_property("test_capture_rate", summary["test_capture_rate"])
+    assert len(learning) >= 3, curve
+    # Every validation while it learns, not only the best: a regression of learning towards
+    # pure pursuit shows in the last policies even when the first one is kept.
+    assert min(learning) >= BAR, curve
+    # 128 test scenarios: a 95 % interval of about +-0.08 around the policy's rate.
+    assert summary["test_capture_rate"] >= BAR - 0.08, summary

@@ -210,6 +210,15 @@ def describe_lines(src: Source, env, features: list[dict[str, Any]]) -> list[str
     lines += [
         f"  [{i}] {f['name']}, {f['unit']} (scale {f['scale']:g})" for i, f in enumerate(features)
     ]
+    if getattr(env.action_fn, "guided", False):
+        a = env.action_fn
+        lines += [
+            "",
+            "action is a CORRECTION to proportional navigation (action guided_velocity): the",
+            f"velocity command is clamp(pn + {a.scale:g} * action, -1, 1) x max speed per axis,",
+            f"pn the law's action (gain {a.gain:g}/s, lead {a.lead:g}, max lead time "
+            f"{a.max_lead_time:g} s; rlplat.envs.kinematics.intercept_action).",
+        ]
     return lines
 
 
@@ -232,16 +241,31 @@ def network_card(actor: DeterministicActor, state: dict[str, Any]) -> dict[str, 
 
 def interface_card(src: Source, env, actor: DeterministicActor, features) -> dict[str, Any]:
     """What the artifacts read and write, feature by feature, and who calls them."""
+    action = {
+        "name": src.cfg.action.name,
+        "dim": actor.action_dim,
+        "range": [-1.0, 1.0],
+        "features": ["v_cmd.x", "v_cmd.y", "v_cmd.z"][: actor.action_dim],
+        "unit": "1: times the drone's maximum speed per axis (m/s) = the velocity command",
+    }
+    if getattr(env.action_fn, "guided", False):
+        a = env.action_fn
+        action["features"] = ["dv_cmd.x", "dv_cmd.y", "dv_cmd.z"][: actor.action_dim]
+        action["unit"] = (
+            "1: a correction to proportional navigation; the velocity command is "
+            f"clamp(pn + {a.scale:g} * action, -1, 1) times the drone's maximum speed per axis"
+        )
+        action["guidance"] = {
+            "law": "proportional_navigation (rlplat.envs.kinematics.intercept_action)",
+            "gain": a.gain,
+            "lead": a.lead,
+            "max_lead_time": a.max_lead_time,
+            "scale": a.scale,
+        }
     return {
         "observation": {"name": src.cfg.observation.name, "dim": actor.obs_dim,
                         "features": features},
-        "action": {
-            "name": src.cfg.action.name,
-            "dim": actor.action_dim,
-            "range": [-1.0, 1.0],
-            "features": ["v_cmd.x", "v_cmd.y", "v_cmd.z"][: actor.action_dim],
-            "unit": "1: times the drone's maximum speed per axis (m/s) = the velocity command",
-        },
+        "action": action,
         "team": {"attackers": env.num_attackers, "defenders": env.num_defenders,
                  "drones_sharing_the_policy": env.team_size},
         "c_api": C_API,
