@@ -46,9 +46,14 @@ def test_every_group_has_options():
     assert "algo=sac_paper" in OPTIONS and "drone=defender_v1" in OPTIONS
 
 
+# What an option needs besides the defaults: AirSim flies one env per simulator.
+NEEDS = {"dynamics=airsim": ["algo.num_envs=1"]}
+
+
 @pytest.mark.parametrize("option", [None, *OPTIONS])
 def test_train_option_composes_and_validates(option):
-    validate_train_config(compose_config("train", [option] if option else []))
+    overrides = [option, *NEEDS.get(option, [])] if option else []
+    validate_train_config(compose_config("train", overrides))
 
 
 @pytest.mark.parametrize(
@@ -149,6 +154,26 @@ BAD_TRAIN = [
     (["+dynamics.max_tilt=0.5"], "dynamics.max_tilt", "valid: name, physics_dt"),
     (["dynamics=quadrotor", "dynamics.max_tilt=2"], "dynamics.max_tilt", "2"),
     (["dynamics=quadrotor", "dynamics.max_rotor_thrust=2"], "dynamics.max_rotor_thrust", "2"),
+    (["dynamics=airsim", "dynamics.endpoints=[foo]"], "dynamics.endpoints", "'foo'"),
+    (["dynamics=airsim", "dynamics.endpoints=[127.0.0.1:0]"], "dynamics.endpoints", ":0'"),
+    (["dynamics=airsim", "dynamics.endpoints=[]"], "dynamics.endpoints", "[]"),
+    (
+        ["dynamics=airsim", "algo.num_envs=1", "dynamics.timeout_s=0.05"],
+        "dynamics.timeout_s",
+        "0.05",
+    ),  # fmt: skip
+    (
+        ["dynamics=airsim", "dynamics.on_time_mismatch=ignore"],
+        "dynamics.on_time_mismatch",
+        "'ignore'",
+    ),  # fmt: skip
+    (["dynamics=airsim", "dynamics.spawn={Attacker:[1,2]}"], "dynamics.spawn", "[1, 2]"),
+    (["dynamics=airsim"], "algo.num_envs", "64, dynamics.endpoints names 1 simulator"),
+    (
+        ["dynamics=airsim", "algo.num_envs=1", "env.compile_step=true"],
+        "env.compile_step",
+        "true",
+    ),  # fmt: skip
     (["observation.position_scale=0"], "observation.position_scale", "0"),
     (["observation.name=lidar"], "observation.name", "'lidar'"),
     (["+action.knob=2"], "action.knob", "unknown key"),
@@ -188,6 +213,12 @@ def test_every_number_refuses_nan(overrides):
 
 
 BAD_EVALUATE = [
+    (
+        ["run_dir=r", "dynamics=airsim", "dynamics.endpoints=[host:99999]"],
+        "dynamics.endpoints",
+        "'host:99999'",
+    ),  # fmt: skip
+    (["run_dir=r", "dynamics=airsim", "+dynamics.speed=2"], "dynamics.speed", "unknown key"),
     (["run_dir=r", "trajectories=-1"], "trajectories", "-1"),
     (["run_dir=r", "trajectories=2.5"], "trajectories", "2.5"),
     (["run_dir=r", "speed_ratio_bins=[1.0,0.5]"], "speed_ratio_bins", "[1.0, 0.5]"),

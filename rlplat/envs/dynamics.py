@@ -20,12 +20,16 @@ Models (registry ``DYNAMICS``):
   velocity tracking with acceleration limits and quadratic drag).
 - ``quadrotor``: ``QuadrotorDynamics``, a 6-DoF X-quadrotor under a batched cascaded controller
   modelled on simple_flight (velocity -> tilt -> body rate -> rotor thrust).
+- ``airsim``: ``rlplat.envs.airsim.dynamics.AirSimDynamics``, the drones of one env flown in an
+  AirSim-protocol simulator over RPC, in lock step (imported on first use).
 """
 
 from __future__ import annotations
 
+import importlib
 import logging
 import math
+from collections.abc import Iterator, Mapping
 
 import torch
 from torch import Tensor
@@ -456,7 +460,32 @@ class QuadrotorDynamics(DroneDynamics):
         self._p, self._v = _ground(torch.add(self._p, v, alpha=dt), v, self._floor)
 
 
-DYNAMICS: dict[str, type[DroneDynamics]] = {
-    "velocity": VelocityDynamics,
-    "quadrotor": QuadrotorDynamics,
-}
+class Registry(Mapping[str, type[DroneDynamics]]):
+    """Models by name. An entry given as ``"package.module:Class"`` is imported when it is
+    first looked up: ``airsim``, whose module builds on this one (and whose client library is
+    needed only when it flies)."""
+
+    def __init__(self, entries: Mapping[str, type[DroneDynamics] | str]) -> None:
+        self._entries = dict(entries)
+
+    def __getitem__(self, name: str) -> type[DroneDynamics]:
+        entry = self._entries[name]
+        if isinstance(entry, str):
+            module, _, attr = entry.partition(":")
+            entry = self._entries[name] = getattr(importlib.import_module(module), attr)
+        return entry
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._entries)
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+
+DYNAMICS = Registry(
+    {
+        "velocity": VelocityDynamics,
+        "quadrotor": QuadrotorDynamics,
+        "airsim": "rlplat.envs.airsim.dynamics:AirSimDynamics",
+    }
+)

@@ -36,31 +36,51 @@ class Dynamics(Protocol):
 
 
 class ScenarioSampler:
-    """Hands out scenario indices of a split to the envs that reset, in the configured order."""
+    """Hands out scenario indices of a split to the envs that reset, in the configured order.
 
-    def __init__(self, n: int, order: str, device: torch.device) -> None:
+    ``share=(i, c)``: this sampler is the i-th of c that split one walk, each taking every c-th
+    index of it from the i-th on (c single-env workers flying one split, as one batch of c
+    envs would: with ``sequential``, worker i flies scenarios i, i + c, ...).
+    """
+
+    def __init__(
+        self, n: int, order: str, device: torch.device, share: tuple[int, int] = (0, 1)
+    ) -> None:
         if order not in ORDERS:
             raise ConfigError(f"env.scenario_order: unknown order '{order}'; valid: {ORDERS}")
+        index, count = share
+        if not 0 <= index < count:
+            raise ValueError(f"scenario_share: (index, count) with 0 <= index < count, got {share}")
         self.n, self.order, self.device = n, order, device
+        self.index, self.count = int(index), int(count)
         self.seed(0)
 
     def seed(self, seed: int) -> None:
         self.generator = torch.Generator().manual_seed(seed)
         self.queue = torch.empty(0, dtype=torch.int64)
 
+    def get_state(self) -> Tensor:
+        """The walk's random state (what a checkpoint keeps)."""
+        return self.generator.get_state()
+
+    def set_state(self, state: Tensor) -> None:
+        """Restore :meth:`get_state`; a (c, L) stack of the c shares' states sets row i."""
+        self.generator.set_state(state[self.index] if state.dim() == 2 else state)
+
     def next(self, k: int) -> Tensor:
         """Indices (k,) int64 of the next k scenarios."""
         if self.order == "random":
             idx = torch.randint(self.n, (k,), generator=self.generator)
         else:
-            while len(self.queue) < k:  # sequential walks the split; shuffled, one perm per pass
+            need = k * self.count
+            while len(self.queue) < need:  # sequential walks the split; shuffled, one perm per pass
                 epoch = (
                     torch.arange(self.n)
                     if self.order == "sequential"
                     else torch.randperm(self.n, generator=self.generator)
                 )
                 self.queue = torch.cat([self.queue, epoch])
-            idx, self.queue = self.queue[:k], self.queue[k:]
+            idx, self.queue = self.queue[:need][self.index :: self.count], self.queue[need:]
         return idx.to(self.device)
 
 
@@ -135,7 +155,9 @@ class PursuitEnv(EnvBase):
         ``env.defender_network``, by default the shipped ``defender_v1``); a network defender
         sees its nearest attacker, as in the 1-vs-1 setting it was trained in. ``attackers``
         flies only the first this many attackers of each scenario (None: all of them), e.g. to
-        measure a 1-vs-1 policy on the defenders of a 2-vs-1 set.
+        measure a 1-vs-1 policy on the defenders of a 2-vs-1 set. ``scenario_share=(i, c)``
+        makes this env the i-th of c single-env workers that split the split's walk (see
+        :class:`ScenarioSampler`; set by the factory of a parallel env, not a config key).
     """
 
     def __init__(
@@ -161,6 +183,7 @@ class PursuitEnv(EnvBase):
         compile_step: bool = False,
         defender_network: Callable[[DroneView], Tensor] | None = None,
         attackers: int | None = None,
+        scenario_share: tuple[int, int] = (0, 1),
         device: torch.device | str = "cpu",
     ) -> None:
         num_envs = dynamics.position.shape[0]
@@ -220,7 +243,9 @@ class PursuitEnv(EnvBase):
         self.terminate_out_of_view = bool(terminate_out_of_view)
         self.setpoint_acceptance = float(setpoint_acceptance)
         self.setpoint_gain, self.pursuit_gain = float(setpoint_gain), float(pursuit_gain)
-        self.sampler = ScenarioSampler(len(self.scenarios), scenario_order, self.device)
+        self.sampler = ScenarioSampler(
+            len(self.scenarios), scenario_order, self.device, scenario_share
+        )
         # One fused program per step instead of ~100 small kernels (static shapes: N is fixed).
         self._advance = self._advance_eager
         if compile_step:
@@ -236,6 +261,13 @@ class PursuitEnv(EnvBase):
         self.caught = torch.zeros(num_envs, m, dtype=torch.bool, device=self.device)
         self.max_speed = torch.ones(num_envs, k + m, device=self.device)
         self._make_specs(num_envs)
+
+    def close(self, *, raise_if_closed: bool = True) -> None:
+        """Close the env and its dynamics' connection, if it has one (``dynamics=airsim``)."""
+        close = getattr(self.dynamics, "close", None)
+        if close is not None:
+            close()
+        super().close(raise_if_closed=raise_if_closed)
 
     @property
     def drone_action_spec(self) -> Bounded:

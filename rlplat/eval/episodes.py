@@ -1,7 +1,8 @@
-"""Deterministic evaluation: one episode per scenario of a split, all in one batch."""
+"""Deterministic evaluation: one episode per scenario of a split, in one batch or in waves."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -107,19 +108,49 @@ def evaluate(
 ) -> EpisodeResults:
     """Fly every scenario of ``env``'s split once with ``policy``; no learning happens.
 
-    ``env`` must have one env per scenario and walk its split sequentially
-    (``scenario_order="sequential"``), so env ``i`` flies scenario ``i``. Each env runs until
-    its first episode ends; envs that finish early keep stepping but their steps are not
+    ``env`` must walk its split sequentially (``scenario_order="sequential"``): with one env per
+    scenario, env ``i`` flies scenario ``i``; with fewer envs (one per simulator on AirSim) the
+    split is flown in waves, env ``i`` of wave ``w`` flying scenario ``w * num_envs + i`` (the
+    last wave's envs beyond the split fly again and are not counted). Each env runs until its
+    first episode of the wave ends; envs that finish early keep stepping but their steps are not
     counted. With ``record`` the drones' positions at every step are kept (``positions``).
     """
-    n = env.batch_size[0]
-    if n != len(env.scenarios) or env.sampler.order != "sequential":
+    n, total = env.batch_size[0], len(env.scenarios)
+    if env.sampler.order != "sequential":
         raise ValueError(
-            f"evaluate: needs one env per scenario ({len(env.scenarios)}) walked sequentially, "
-            f"got num_envs={n}, order={env.sampler.order}"
+            f"evaluate: needs the split walked sequentially, got order={env.sampler.order}"
         )
-    kind = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
     env.set_seed(0)  # restarts the sequential walk at scenario 0
+    waves = [_fly(env, policy, deterministic, record) for _ in range(math.ceil(total / n))]
+    if record:  # episodes of different waves have different lengths: repeat the final positions
+        longest = max(w["positions"].shape[1] for w in waves)
+        for w in waves:
+            p = w["positions"]
+            w["positions"] = torch.cat([p, p[:, -1:].expand(-1, longest - p.shape[1], -1, -1)], 1)
+    out = {k: torch.cat([w[k] for w in waves])[:total] for k in waves[0] if k != "terms"}
+    terms = {k: torch.cat([w["terms"][k] for w in waves])[:total] for k in waves[0]["terms"]}
+    captured, length = out["captured"], out["length"]
+    time_to_capture = torch.where(captured, length * env.control_period, float("nan"))
+    return EpisodeResults(
+        scenario_index=out["index"],
+        captured=captured,
+        grounded=out["grounded"],
+        returns=out["returns"],
+        length=length,
+        time_to_capture=time_to_capture.float(),
+        term_sums=terms,
+        min_distance=out["min_distance"],
+        visible_fraction=(out["visible_steps"] / length.clamp_min(1)).float(),
+        defender_route_fraction=out["waypoint"].float() / env.routes.shape[1],
+        defender_caught=out["caught"],
+        positions=out.get("positions"),
+    )
+
+
+def _fly(env: PursuitEnv, policy, deterministic: bool, record: bool) -> dict:
+    """One wave: reset every env, fly until each one's episode ends; per-env tallies (CPU)."""
+    n = env.batch_size[0]
+    kind = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
     td = env.reset()
     index = td["scenario_index"].squeeze(-1).clone()
     alive = torch.ones(n, dtype=torch.bool, device=env.device)
@@ -156,21 +187,21 @@ def evaluate(
             grounded |= done & low & ~nxt["captured"].squeeze(-1)
             alive &= ~done
             td = nxt.exclude("reward", "done", "terminated", "truncated")
-    time_to_capture = torch.where(captured, length * env.control_period, float("nan"))
-    return EpisodeResults(
-        scenario_index=index.cpu(),
-        captured=captured.cpu(),
-        grounded=grounded.cpu(),
-        returns=returns.cpu(),
-        length=length.cpu(),
-        time_to_capture=time_to_capture.float().cpu(),
-        term_sums={k: v.cpu() for k, v in terms.items()},
-        min_distance=min_distance.cpu(),
-        visible_fraction=(visible_steps / length.clamp_min(1)).float().cpu(),
-        defender_route_fraction=(waypoint.float() / env.routes.shape[1]).cpu(),
-        defender_caught=caught.cpu(),
-        positions=None if positions is None else torch.stack(positions, 1).cpu(),
-    )
+    out = {
+        "index": index,
+        "captured": captured,
+        "grounded": grounded,
+        "returns": returns,
+        "length": length,
+        "min_distance": min_distance,
+        "visible_steps": visible_steps,
+        "waypoint": waypoint,
+        "caught": caught,
+        "terms": {k: v.cpu() for k, v in terms.items()},
+    }
+    if positions is not None:
+        out["positions"] = torch.stack(positions, 1)
+    return {k: v if k == "terms" else v.cpu() for k, v in out.items()}
 
 
 @torch.no_grad()

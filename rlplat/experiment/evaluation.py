@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,8 +35,13 @@ from rlplat.eval.compare import compare
 from rlplat.eval.episodes import EpisodeResults, evaluate
 from rlplat.eval.report import write_report
 from rlplat.eval.tables import differing_outcomes, episode_rows, summarize, write_csv
-from rlplat.experiment.factory import build_component, build_env, resolve_scenarios
-from rlplat.experiment.schema import validate_evaluate_config
+from rlplat.experiment.factory import (
+    build_component,
+    build_env,
+    eval_num_envs,
+    resolve_scenarios,
+)
+from rlplat.experiment.schema import validate_dynamics_swap, validate_evaluate_config
 from rlplat.io import atomic_write_text, sha256_bytes
 from rlplat.scenarios import SPLITS, ScenarioSet
 
@@ -183,6 +188,7 @@ def evaluate_run(
     speed_ratio_bins: Sequence[float] = (0.5, 0.8, 1.0, 1.25, 2.0),
     plots: bool = True,
     compiler: str = "cc",
+    dynamics: Mapping[str, Any] | None = None,
 ) -> Evaluation:
     """Replay every scenario of ``split`` once, deterministically, with the run's policy.
 
@@ -202,10 +208,18 @@ def evaluate_run(
         speed_ratio_bins: inner bin edges of attacker / defender maximum speed.
         plots: write the PNG plots and embed them in ``report.md``.
         compiler: the C compiler that builds ``policy.c`` (``policy=c``).
+        dynamics: fly on this dynamics instead of the run's: a ``conf/dynamics/`` node (e.g.
+            ``airsim`` with its ``endpoints``; on AirSim the split is flown in waves, one env
+            per simulator); the default ``out_dir`` then ends in ``-<dynamics name>``.
     """
     # Everything is checked before any work starts.
     run_dir = Path(run_dir)
     cfg = load_run_config(run_dir)
+    swapped = dynamics is not None
+    if swapped:
+        dynamics = OmegaConf.to_container(OmegaConf.create(dict(dynamics)), resolve=True)
+        validate_dynamics_swap(dynamics, OmegaConf.to_container(cfg, resolve=True))
+        cfg.dynamics = OmegaConf.create(dynamics)
     if policy not in EVAL_POLICIES:
         raise ConfigError(f"policy: unknown '{policy}'; valid: {', '.join(EVAL_POLICIES)}")
     if split not in SPLITS:
@@ -223,7 +237,10 @@ def evaluate_run(
         compiler = find_compiler(compiler)
     if files is not None:
         name = f"{name}-{policy}"
-    out_dir = Path(out_dir) if out_dir is not None else run_dir / "eval" / f"{split}-{name}"
+    if out_dir is None:
+        suffix = f"-{cfg.dynamics.name}" if swapped else ""
+        out_dir = run_dir / "eval" / f"{split}-{name}{suffix}"
+    out_dir = Path(out_dir)
     summary_path = run_dir / "summary.json"
     run_summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
     state = load_checkpoint(path) if path else None
@@ -239,49 +256,54 @@ def evaluate_run(
         # A baseline flies its own velocity commands (eq. 2), not through a learner's action.
         env_cfg = OmegaConf.merge(cfg, {"action": None})
         env_cfg.action = {"name": "velocity"}
+    overrides = {} if attackers is None else {"attackers": attackers}
+    if cfg.dynamics.name == "airsim":
+        overrides["compile_step"] = False  # a step there is calls to the simulator
     env = build_env(
-        env_cfg, scenarios=scenarios, split=split, num_envs=n, device=device,
-        scenario_order="sequential",
-        **({} if attackers is None else {"attackers": attackers}),
+        env_cfg, scenarios=scenarios, split=split, num_envs=eval_num_envs(cfg, n),
+        device=device, scenario_order="sequential", **overrides,
     )  # fmt: skip
-    if state is not None:
-        check_policy_fits(state, cfg, env, path)
-        actor = actor_from_state(state, env.drone_action_spec, device, env.group)
-        if files is not None:
-            torch_actor, actor = actor, artifact_policy(policy, files, state, env, compiler)
-    else:
-        actor = make_scripted_policy(policy, env)
+    try:
+        if state is not None:
+            check_policy_fits(state, cfg, env, path)
+            actor = actor_from_state(state, env.drone_action_spec, device, env.group)
+            if files is not None:
+                torch_actor, actor = actor, artifact_policy(policy, files, state, env, compiler)
+        else:
+            actor = make_scripted_policy(policy, env)
 
-    # Replay.
-    t0 = time.perf_counter()
-    results = evaluate(env, actor, record=plots and trajectories > 0)
-    wall = time.perf_counter() - t0
-    log.info("%s on %d %s scenarios in %.1f s", name, n, split, wall)
+        # Replay.
+        t0 = time.perf_counter()
+        results = evaluate(env, actor, record=plots and trajectories > 0)
+        wall = time.perf_counter() - t0
+        log.info("%s on %d %s scenarios in %.1f s", name, n, split, wall)
 
-    routes = env.routes.cpu()
-    bound = split_ceiling(cfg, env_cfg, env, scenarios, split, device)
-    rows = episode_rows(results, scenarios, split, routes, env.num_attackers, bound)
-    artifact = {}
-    if files is not None:  # the torch actor on the same scenarios: which outcomes differ
-        reference = evaluate(env, torch_actor)
-        ref_rows = episode_rows(reference, scenarios, split, routes, env.num_attackers)
-        differ = [
-            {"scenario_id": d["scenario_id"], "torch": d["reference"], policy: d["outcome"]}
-            for d in differing_outcomes(rows, ref_rows)
-        ]
-        flipped = [d for d in differ if d["torch"]["captured"] != d[policy]["captured"]]
-        artifact = {
-            "artifact": {
-                "dir": str(export_dir(run_dir, ckpt, path)),
-                "files": {k: sha256_bytes(v) for k, v in files.items()},
-            },
-            "torch_capture_rate": reference.capture_rate,
-            "outcomes_differing_from_torch": len(differ),
-            "captures_differing_from_torch": len(flipped),
-            "differences_from_torch": differ,
-        }
-        log.info("%d of %d outcomes differ from the torch policy's (%d captures)",
-                 len(differ), n, len(flipped))  # fmt: skip
+        routes = env.routes.cpu()
+        bound = split_ceiling(cfg, env_cfg, env, scenarios, split, device)
+        rows = episode_rows(results, scenarios, split, routes, env.num_attackers, bound)
+        artifact = {}
+        if files is not None:  # the torch actor on the same scenarios: which outcomes differ
+            reference = evaluate(env, torch_actor)
+            ref_rows = episode_rows(reference, scenarios, split, routes, env.num_attackers)
+            differ = [
+                {"scenario_id": d["scenario_id"], "torch": d["reference"], policy: d["outcome"]}
+                for d in differing_outcomes(rows, ref_rows)
+            ]
+            flipped = [d for d in differ if d["torch"]["captured"] != d[policy]["captured"]]
+            artifact = {
+                "artifact": {
+                    "dir": str(export_dir(run_dir, ckpt, path)),
+                    "files": {k: sha256_bytes(v) for k, v in files.items()},
+                },
+                "torch_capture_rate": reference.capture_rate,
+                "outcomes_differing_from_torch": len(differ),
+                "captures_differing_from_torch": len(flipped),
+                "differences_from_torch": differ,
+            }
+            log.info("%d of %d outcomes differ from the torch policy's (%d captures)",
+                     len(differ), n, len(flipped))  # fmt: skip
+    finally:
+        env.close()  # a parallel env's workers, a simulator connection
     summary = {
         "policy": policy,
         "name": name,
@@ -289,6 +311,7 @@ def evaluate_run(
         "split": split,
         "run_dir": str(run_dir),
         "drone": cfg.drone.name,
+        "dynamics": cfg.dynamics.name,
         "seed": cfg.seed,
         "scenarios": n,
         "attackers": env.num_attackers,
@@ -345,6 +368,7 @@ def evaluate_from_config(cfg: DictConfig) -> list[str]:
         "speed_ratio_bins": list(cfg.speed_ratio_bins),
         "plots": bool(cfg.plots),
         "compiler": cfg.compiler,
+        "dynamics": cfg.get("dynamics"),
     }
     if cfg.threads is not None:
         torch.set_num_threads(cfg.threads)

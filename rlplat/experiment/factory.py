@@ -1,6 +1,7 @@
 """Build envs from the composed Hydra config: scenario sets, components, the defender network.
 
-The env knows no learner: the network its ``nn`` defenders fly is loaded here and injected."""
+The env knows no learner: the network its ``nn`` defenders fly is loaded here and injected.
+With ``dynamics=airsim`` an env batch is one env per simulator, in parallel worker processes."""
 
 from __future__ import annotations
 
@@ -18,7 +19,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from rlplat.agents.policies import load_controller
 from rlplat.envs.components import ACTIONS, OBSERVATIONS, Reward
-from rlplat.envs.dynamics import DYNAMICS
+from rlplat.envs.dynamics import DYNAMICS, DroneDynamics
+from rlplat.envs.parallel import PursuitParallelEnv, worker_env
 from rlplat.envs.pursuit import PursuitEnv, flown_attackers
 from rlplat.errors import ConfigError
 from rlplat.scenarios import STRATEGIES, ScenarioSet, ScenarioSpec, write_scenario_set
@@ -77,20 +79,88 @@ def build_env(
     num_envs: int = 1,
     device: str | torch.device = "cpu",
     **env_overrides: Any,
-) -> PursuitEnv:
+) -> PursuitEnv | PursuitParallelEnv:
     """The env described by ``cfg`` (groups dynamics/observation/action/reward/drone, node env).
 
     ``env_overrides`` replace keys of the ``env`` node (e.g. ``scenario_order="sequential"`` for
-    an evaluation env).
+    an evaluation env). With ``dynamics=airsim`` each env flies on one simulator of
+    ``dynamics.endpoints`` (``num_envs`` must be their number): one is a PursuitEnv, several a
+    :class:`~rlplat.envs.parallel.PursuitParallelEnv` of batch [num_envs] (one worker process
+    per simulator, stepped at once).
     """
     if num_envs < 1:
         raise ConfigError(f"num_envs: must be >= 1, got {num_envs}")
     c = OmegaConf.to_container(cfg, resolve=True)
+    if c["dynamics"].get("name") != "airsim":
+        return _pursuit_env(c, scenarios, split, num_envs, device, env_overrides)
+    endpoints = c["dynamics"].get("endpoints") or []
+    if isinstance(endpoints, str) or num_envs != len(endpoints):
+        raise ConfigError(
+            f"num_envs: {num_envs}, dynamics.endpoints names {len(endpoints)} simulator(s) "
+            f"(one env per simulator): {endpoints!r}"
+        )
+    if {**c["env"], **env_overrides}.get("compile_step"):
+        raise ConfigError("env.compile_step: true, must be false with dynamics=airsim")
+    if num_envs == 1:
+        return _pursuit_env(c, scenarios, split, 1, device, env_overrides)
+    # Every simulator is checked here first (one line per fault, before any worker starts).
+    k = flown_attackers({**c["env"], **env_overrides}.get("attackers"), scenarios)
+    for endpoint in endpoints[1:]:  # the first is connected below, for the specs
+        _dynamics({**c["dynamics"], "endpoints": [endpoint]}, 1, k, scenarios.defenders,
+                  device).close()  # fmt: skip
+    placeholder = DroneDynamics(
+        num_envs=num_envs, num_drones=k + scenarios.defenders, device=device, physics_dt=1.0
+    )
+    template = _pursuit_env(c, scenarios, split, num_envs, device, env_overrides, placeholder)
+    workers = [
+        {
+            "config": {**c, "dynamics": {**c["dynamics"], "endpoints": [endpoint]}},
+            "scenarios": scenarios,
+            "split": split,
+            "device": str(device),
+            "env_overrides": {**env_overrides, "scenario_share": (i, num_envs)},
+        }
+        for i, endpoint in enumerate(endpoints)
+    ]
+    log.info("flying %d envs on the simulators %s", num_envs, ", ".join(endpoints))
+    return PursuitParallelEnv(
+        airsim_worker, workers, template=template, device=device, mp_start_method="spawn"
+    )
+
+
+def airsim_worker(
+    config: dict[str, Any],
+    scenarios: ScenarioSet,
+    split: str,
+    device: str,
+    env_overrides: dict[str, Any],
+    fault_path: str | None,
+):
+    """One worker of an AirSim parallel env: the single-env pursuit on its simulator."""
+    env = _pursuit_env(config, scenarios, split, 1, device, env_overrides)
+    return worker_env(env, fault_path)
+
+
+def _dynamics(node: Mapping[str, Any], num_envs: int, k: int, m: int, device) -> DroneDynamics:
+    """The configured dynamics model for envs of ``k`` attackers and ``m`` defenders."""
+    extra = {"num_attackers": k} if node.get("name") == "airsim" else {}
+    return build_component(
+        DYNAMICS, "dynamics", node, num_envs=num_envs, num_drones=k + m, device=device, **extra
+    )
+
+
+def _pursuit_env(
+    c: dict[str, Any],
+    scenarios: ScenarioSet,
+    split: str,
+    num_envs: int,
+    device: str | torch.device,
+    env_overrides: Mapping[str, Any],
+    dynamics: DroneDynamics | None = None,
+) -> PursuitEnv:
+    """The batched PursuitEnv of the resolved config ``c`` (its dynamics built unless given)."""
     env_node = {**c["env"], **env_overrides}
     k, m = flown_attackers(env_node.get("attackers"), scenarios), scenarios.defenders
-    dynamics = build_component(
-        DYNAMICS, "dynamics", c["dynamics"], num_envs=num_envs, num_drones=k + m, device=device
-    )
     # What each learner sees: every opponent and every team-mate.
     team, opponents = (k, m) if c["drone"]["learner"] == "attacker" else (m, k)
     reward = Reward(**checked_kwargs(Reward, c["reward"], "reward"))
@@ -113,24 +183,32 @@ def build_env(
         env_kwargs.get("defender_network"), scenarios, split, c["drone"]["learner"]
     )
     env_kwargs["defender_network"] = None if network is None else network.to(device)
+    observation = build_component(
+        OBSERVATIONS, "observation", c["observation"], opponents=opponents, mates=team - 1,
+        in_play=m > 1,
+    )  # fmt: skip
+    action = build_component(ACTIONS, "action", c["action"])
+    if dynamics is None:  # last: a simulator is connected only once the rest is checked
+        dynamics = _dynamics(c["dynamics"], num_envs, k, m, device)
     return PursuitEnv(
         scenarios=scenarios,
         dynamics=dynamics,
-        observation=build_component(
-            OBSERVATIONS,
-            "observation",
-            c["observation"],
-            opponents=opponents,
-            mates=team - 1,
-            in_play=m > 1,
-        ),  # fmt: skip
-        action=build_component(ACTIONS, "action", c["action"]),
+        observation=observation,
+        action=action,
         reward=reward,
         split=split,
         learner=c["drone"]["learner"],
         device=device,
         **env_kwargs,
     )
+
+
+def eval_num_envs(cfg: DictConfig, scenarios: int) -> int:
+    """How many envs fly an evaluation of ``scenarios`` scenarios: all at once on an embedded
+    model; on AirSim, one per simulator (the split flown in waves)."""
+    if cfg.dynamics.name == "airsim":
+        return len(cfg.dynamics.endpoints)
+    return scenarios
 
 
 def _defender_network(path: str | None, scenarios: ScenarioSet, split: str, learner: str):

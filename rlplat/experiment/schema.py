@@ -29,6 +29,8 @@ from omegaconf.errors import OmegaConfBaseException
 from rlplat.agents.export import ARTIFACTS
 from rlplat.agents.policies import POLICIES as SCRIPTED
 from rlplat.agents.sac import ACTIVATIONS
+from rlplat.envs.airsim.client import parse_endpoint
+from rlplat.envs.airsim.dynamics import TIME_MISMATCH
 from rlplat.envs.components import ACTIONS, OBSERVATIONS, REWARD_TERMS
 from rlplat.envs.dynamics import DYNAMICS
 from rlplat.envs.pursuit import ORDERS, ROLES
@@ -69,6 +71,39 @@ def scenario(value: Any) -> str | None:
     except (TypeError, ValueError, KeyError) as e:
         return f"invalid ({show(str(e))})"
     return None
+
+
+def endpoints(value: Any) -> str | None:
+    """A non-empty list of distinct ``host:port`` simulator addresses."""
+    if not isinstance(value, list) or not value:
+        return f"must be a non-empty list of host:port, got {show(value)}"
+    for item in value:
+        try:
+            parse_endpoint(item)
+        except ConfigError:
+            return f"{show(item)} is not host:port (e.g. 127.0.0.1:41451, port in 1..65535)"
+    if len(set(value)) < len(value):
+        return f"names a simulator twice, got {show(value)}"
+    return None
+
+
+def time_mismatch(value: Any) -> str | None:
+    """What a step off the control period does: one of ``TIME_MISMATCH``."""
+    if isinstance(value, str) and value in TIME_MISMATCH:
+        return None
+    return f"must be one of {', '.join(TIME_MISMATCH)}, got {show(value)}"
+
+
+def spawn_points(value: Any) -> str | None:
+    """null, or a mapping of vehicle names to (x, y, z) NED metres."""
+    if value is None:
+        return None
+    if isinstance(value, Mapping) and all(
+        isinstance(v, list) and len(v) == 3 and all(FINITE.fits(x) for x in v)
+        for v in value.values()
+    ):
+        return None
+    return f"must be null or {{vehicle: [x, y, z]}} (NED m), got {show(value)}"
 
 
 def reward_terms(value: Any) -> str | None:
@@ -185,6 +220,17 @@ DYNAMICS_KNOBS: dict[str, Rule] = {
     "angle_gain": POSITIVE,
     "max_angle_rate": POSITIVE,
     "rate_gain": POSITIVE,
+    # airsim: the simulators and how long to wait for them
+    "endpoints": endpoints,
+    "attacker_name": Text(),
+    "defender_name": Text(),
+    "connect_timeout_s": POSITIVE,
+    "timeout_s": POSITIVE,
+    "step_tolerance_s": NON_NEGATIVE,
+    "on_time_mismatch": time_mismatch,
+    "clock_speed": POSITIVE,
+    "spawn": spawn_points,
+    "move_margin_s": POSITIVE,
 }
 #: Knobs of the observations (conf/observation/).
 OBSERVATION_KNOBS: dict[str, Rule] = {"position_scale": POSITIVE, "velocity_scale": POSITIVE}
@@ -197,7 +243,7 @@ ACTION_KNOBS: dict[str, Rule] = {
 }
 #: Component groups: registry, knob rules, and the arguments the env factory passes itself.
 COMPONENTS: dict[str, tuple[Mapping[str, Any], Mapping[str, Rule], tuple[str, ...]]] = {
-    "dynamics": (DYNAMICS, DYNAMICS_KNOBS, ("num_envs", "num_drones", "device")),
+    "dynamics": (DYNAMICS, DYNAMICS_KNOBS, ("num_envs", "num_drones", "num_attackers", "device")),
     "observation": (OBSERVATIONS, OBSERVATION_KNOBS, ("opponents", "mates", "in_play")),
     "action": (ACTIONS, ACTION_KNOBS, ()),
 }
@@ -244,9 +290,10 @@ def knobs(cls: Callable[..., Any], factory_args: Iterable[str]) -> dict[str, Any
     return {p.name: p.default for p in params if p.name not in factory_args}
 
 
-def _component_rules(c: Mapping[str, Any]) -> dict[str, Rule]:
+def _component_rules(c: Mapping[str, Any], groups: Iterable[str] = COMPONENTS) -> dict[str, Rule]:
     rules: dict[str, Rule] = {}
-    for group, (registry, rule_of, factory_args) in COMPONENTS.items():
+    for group in groups:
+        registry, rule_of, factory_args = COMPONENTS[group]
         rules[f"{group}.name"] = Choice(registry)
         name = lookup(c, f"{group}.name")
         if isinstance(name, str) and name in registry:
@@ -301,7 +348,9 @@ def _check_train_fields(c: Mapping[str, Any]) -> None:
     if k is not None and c["scenarios_dir"] is None and k > scenario_k:
         raise ConfigError(f"env.attackers: {k}, the scenarios have {scenario_k} (at most)")
     dynamics = _component(c, "dynamics")
-    if dynamics["physics_dt"] > env["control_period"]:
+    if c["dynamics"]["name"] == "airsim":
+        _check_airsim(dynamics, env, algo["num_envs"], "algo.num_envs")
+    elif dynamics["physics_dt"] > env["control_period"]:
         raise ConfigError(
             f"dynamics.physics_dt: {dynamics['physics_dt']} s is longer than one control "
             f"period (env.control_period={env['control_period']} s)"
@@ -313,6 +362,24 @@ def _check_train_fields(c: Mapping[str, Any]) -> None:
                 f"dynamics.max_rotor_thrust: 4 rotors of {thrust} N cannot hold a weight of "
                 f"{weight:g} N (dynamics.mass x dynamics.gravity)"
             )
+
+
+def _check_airsim(dynamics: Mapping[str, Any], env: Mapping[str, Any], n: int, field: str):
+    """The simulators of ``dynamics=airsim`` against the env: one env per simulator, a
+    timeout longer than a step, no compiled step (a step is calls to the simulator)."""
+    if n != len(dynamics["endpoints"]):
+        raise ConfigError(
+            f"{field}: {n}, dynamics.endpoints names {len(dynamics['endpoints'])} simulator(s) "
+            f"(one env per simulator): {show(dynamics['endpoints'])}"
+        )
+    wall = env["control_period"] / dynamics["clock_speed"]
+    if dynamics["timeout_s"] <= wall:
+        raise ConfigError(
+            f"dynamics.timeout_s: {dynamics['timeout_s']} s is not longer than one step of the "
+            f"simulator's clock (env.control_period / dynamics.clock_speed = {wall:g} s)"
+        )
+    if env["compile_step"]:
+        raise ConfigError("env.compile_step: true, must be false with dynamics=airsim")
 
 
 def _check_evaluate_fields(c: Mapping[str, Any]) -> None:
@@ -364,8 +431,24 @@ def validate_evaluate_config(cfg: DictConfig) -> None:
         ConfigError: one line naming the first offending field and its value.
     """
     c = _resolved(cfg)
-    check_table(c, EVALUATE_RULES)
+    swap = _component_rules(c, ["dynamics"]) if c.get("dynamics") is not None else {}
+    check_table(c, {**EVALUATE_RULES, **swap})
     _check_evaluate_fields(c)
+
+
+def validate_dynamics_swap(dynamics: Mapping[str, Any], run_config: Mapping[str, Any]) -> None:
+    """Check a dynamics node (``evaluate.py dynamics=...``) that replaces a run's own, against
+    the run's env: its knobs, and with ``airsim`` its timing and step rules.
+
+    Raises:
+        ConfigError: one line naming the first offending field and its value.
+    """
+    c = {"dynamics": dict(dynamics)}
+    check_table(c, _component_rules(c, ["dynamics"]))
+    env = {**run_config["env"], "compile_step": False}  # an evaluation never compiles here
+    if c["dynamics"]["name"] == "airsim":
+        node = _component(c, "dynamics")
+        _check_airsim(node, env, len(node["endpoints"]), "dynamics.endpoints")
 
 
 def validate_export_config(cfg: DictConfig) -> None:

@@ -49,6 +49,9 @@ from rlplat.scenarios import ScenarioSet
 
 log = logging.getLogger(__name__)
 
+#: The embedded model a run that trains on AirSim validates and tests on (see make_eval_env).
+VALIDATION_DYNAMICS = "velocity"
+
 
 @dataclass
 class RunState:
@@ -121,6 +124,9 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     env = build_env(cfg, scenarios=scenarios, split="train", num_envs=algo.num_envs, device=device)
     train_env = make_train_env(env)
     val_env = make_eval_env(cfg, scenarios, "val", device)
+    if cfg.dynamics.name == "airsim":
+        log.info("training on AirSim (%s); validation and the final test fly on the embedded "
+                 "%s model", ", ".join(cfg.dynamics.endpoints), VALIDATION_DYNAMICS)  # fmt: skip
     net = net_spec(env.obs_fn.scale, env.drone_action_spec.shape[-1], algo)
     interface = make_interface(cfg, env)
     if resume_state is not None:
@@ -135,7 +141,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
         state = RunState.from_checkpoint(resume_state)
         agent.load_state_dict(resume_state["agent"])
         set_rng_state(resume_state["rng"])
-        env.sampler.generator.set_state(resume_state["scenario_rng"])
+        env.sampler.set_state(resume_state["scenario_rng"])
         log.info("resuming %s at %d frames", run_dir, state.frames)
 
     # Create the logger; measure the scripted reference on the validation split
@@ -273,7 +279,15 @@ def make_train_env(env: PursuitEnv) -> TransformedEnv:
 
 
 def make_eval_env(cfg: DictConfig, scenarios: ScenarioSet, split: str, device) -> PursuitEnv:
-    """One env per scenario of ``split``, walked in order (what :func:`evaluate` needs)."""
+    """One env per scenario of ``split``, walked in order (what :func:`evaluate` needs).
+
+    A run that trains on AirSim validates (and tests) on the embedded ``velocity`` model, with
+    its defaults (simple_flight's fit): the simulators are the collector's, whose episodes in
+    flight a validation there would cut; ``evaluate.py run_dir=... dynamics=airsim`` flies the
+    trained policy on AirSim afterwards."""
+    if cfg.dynamics.name == "airsim":
+        cfg = cfg.copy()
+        cfg.dynamics = OmegaConf.create({"name": VALIDATION_DYNAMICS})
     n = len(scenarios.split(split))
     return build_env(
         cfg, scenarios=scenarios, split=split, num_envs=n, device=device,
@@ -386,7 +400,7 @@ def checkpoint(run: Run, state: RunState) -> dict[str, Any]:
         "agent": run.agent.state_dict(),
         **state.as_checkpoint(),
         "rng": rng_state(),
-        "scenario_rng": run.env.sampler.generator.get_state(),
+        "scenario_rng": run.env.sampler.get_state(),
         "scenario_digest": run.scenarios.digest,
         "config": run.config,
     }

@@ -1,0 +1,381 @@
+"""The connection to one AirSim-protocol simulator (AirSim, Cosys-AirSim) at ``host:port``.
+
+:class:`AirSimClient` speaks through the ``cosysairsim`` client library (the ``airsim`` extra:
+``pip install -e .[airsim]``), imported when a client is first made, never at import time. What
+it adds to the library is what a lock-step loop needs to fail cleanly:
+
+- only Python floats, ints, bools and strings go on the wire (numpy scalars make the simulator
+  raise, drop the value or hang);
+- every call that waits has a deadline (``timeout_s``; ``connect_timeout_s`` while connecting),
+  so a simulator that stops answering is an :class:`AirSimError` naming the call it was
+  waiting for, never a hang (the library's own timeout defaults to an hour);
+- a connection the simulator closes fails every pending call at once and is not silently
+  reopened (the library would reconnect on the next call and lose the paused sim's state);
+- no simulator at the address, a vehicle name it does not have, a refused call: one line each.
+
+Moves are sent without waiting for their end (a move answers only when it is done or cancelled,
+and the simulation is paused between steps: waiting on one would block until the timeout). State
+reads of several vehicles are sent together and awaited together: one round trip per step.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import math
+import socket
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from types import SimpleNamespace
+from typing import Any
+
+from rlplat.errors import ConfigError, RlplatError
+
+log = logging.getLogger(__name__)
+
+#: How a user starts a simulator that rlplat can fly (said when none answers).
+START_HINT = (
+    "start AirSim/Unreal with the settings.json of `python -m rlplat.airsim settings out=PATH` "
+    "(SimMode Multirotor, ApiServerPort = this port), or the loopback test server with "
+    "`python -m rlplat.airsim serve --port PORT`"
+)
+
+
+class AirSimError(RlplatError):
+    """The simulator is unreachable, stopped answering, lost the connection or refused a call;
+    the message names the address and what was being waited for."""
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """What one ``getMultirotorState`` read gives a lock-step loop (NED, the vehicle's own
+    spawn-relative frame, SI units)."""
+
+    position: tuple[float, float, float]  # m, relative to the vehicle's spawn point
+    velocity: tuple[float, float, float]  # m/s
+    timestamp_ns: int  # the simulator's clock
+
+
+def parse_endpoint(text: Any, field: str = "dynamics.endpoints") -> tuple[str, int]:
+    """``"host:port"`` -> (host, port); a clear one-line :class:`ConfigError` naming ``field``
+    and the value for anything else (no port, a port outside 1..65535, an empty host)."""
+    if isinstance(text, str) and ":" in text:
+        host, _, port = text.strip().rpartition(":")
+        host = host.strip("[]")
+        if host and port.isdigit() and 1 <= int(port) <= 65535:
+            return host, int(port)
+    raise ConfigError(
+        f"{field}: {text!r} is not host:port (e.g. 127.0.0.1:41451, port in 1..65535)"
+    )
+
+
+def plain(value: Any) -> Any:
+    """``value`` as what may go on the wire: a Python bool, int, float or str (numpy and torch
+    scalars, 0-d arrays and tensors converted), or a list/dict of them."""
+    if isinstance(value, (bool, str)) or value is None:
+        return value
+    if isinstance(value, (list, tuple)):
+        return [plain(v) for v in value]
+    if isinstance(value, dict):
+        return {str(k): plain(v) for k, v in value.items()}
+    if hasattr(value, "to_msgpack"):  # a library struct (Pose, YawMode): its fields made plain
+        for key, field in vars(value).items():
+            setattr(value, key, plain(field))
+        return value
+    if hasattr(value, "item"):  # numpy / torch scalars and single-element arrays
+        value = value.item()
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, int):
+        return int(value)
+    if isinstance(value, float):
+        return float(value)
+    raise TypeError(f"cannot send {type(value).__name__} to the simulator: {value!r}")
+
+
+def _triple(v: Any) -> tuple[float, float, float]:
+    return (float(v.x_val), float(v.y_val), float(v.z_val))
+
+
+class _Lost(Exception):
+    """The simulator closed the connection."""
+
+
+class _Expired(Exception):
+    """No answer before the deadline."""
+
+
+def _retrieved(task) -> None:
+    """Mark a send task's exception as seen (the call it belongs to reports the loss)."""
+    if not task.cancelled():
+        task.exception()
+
+
+def _session_types():
+    """The msgpack-rpc session and transport the library rides on, with rlplat's policy: no
+    silent reconnect after a loss, and read errors kept quiet (the loss is reported)."""
+    import msgpackrpc
+    from msgpackrpc.transport import tcp
+    from tornado.iostream import IOStream
+
+    class Socket(tcp.ClientSocket):
+        async def on_connect(self):
+            self._stream.set_nodelay(True)  # small requests go out at once (no Nagle delay)
+            await self._transport.on_connect(self)
+            await self.start_read(silent_errors=True)
+
+    class Transport(tcp.ClientTransport):
+        async def connect(self):
+            await Socket(IOStream(self._address.socket()), self).connect()
+
+        async def on_close(self, sock):
+            if self._closed:
+                return
+            self._closed = True
+            self._sockets = []
+            self._session.on_connect_failed(_Lost("the simulator closed the connection"))
+
+    class Session(msgpackrpc.Client):
+        def __init__(self, host: str, port: int) -> None:
+            # timeout=0: no library timer; every wait has its own deadline (wait()).
+            super().__init__(
+                msgpackrpc.Address(host, port),
+                timeout=0,
+                builder=SimpleNamespace(ClientTransport=Transport),
+                reconnect_limit=0,
+                pack_encoding="utf-8",
+                unpack_encoding="utf-8",
+            )
+
+        def send_request(self, method, args):
+            future = super().send_request(method, args)
+            future.task.add_done_callback(_retrieved)  # a send on a lost connection: reported
+            return future
+
+        def call(self, method, *args):
+            return self.wait(self.call_async(method, *args), self.deadline_s)
+
+        def wait(self, future, seconds: float):
+            """The future's result, or ``_Expired`` after ``seconds``."""
+            ioloop = self._loop._ioloop
+
+            def expire():
+                if not future._set_flag:
+                    future.set_error(_Expired())
+                    self._loop.stop()
+
+            handle = ioloop.call_later(seconds, expire)
+            try:
+                return future.get()
+            finally:
+                ioloop.remove_timeout(handle)
+
+    return Session
+
+
+def _ensure_event_loop() -> None:
+    """The library runs tornado on this thread's asyncio loop: make one where there is none
+    (or only a closed one)."""
+    try:
+        loop = asyncio.get_event_loop_policy().get_event_loop()
+    except RuntimeError:
+        loop = None
+    if loop is None or loop.is_closed():
+        asyncio.set_event_loop(asyncio.new_event_loop())
+
+
+class AirSimClient:
+    """A connection to the simulator at ``address`` (``host:port``), paused on connect.
+
+    Args:
+        address: ``host:port`` of the simulator's RPC server (``ApiServerPort``, 41451 by
+            default).
+        connect_timeout_s: s, the longest wait for the connection and the first answer.
+        timeout_s: s, the longest wait for any later answer (a ``simContinueForTime`` of a
+            control period included).
+
+    Raises:
+        ConfigError: ``address`` is not ``host:port``.
+        AirSimError: nothing answers at ``address`` within ``connect_timeout_s``.
+    """
+
+    def __init__(
+        self, address: str, *, connect_timeout_s: float = 10.0, timeout_s: float = 10.0
+    ) -> None:
+        self.host, self.port = parse_endpoint(address)
+        self.address = f"{self.host}:{self.port}"
+        self.connect_timeout_s, self.timeout_s = float(connect_timeout_s), float(timeout_s)
+        self._api, self._field = None, "dynamics.timeout_s"
+        self._probe()
+        try:
+            import cosysairsim
+        except ImportError:
+            raise AirSimError(
+                "dynamics=airsim needs the cosysairsim client library: pip install -e .[airsim]"
+            ) from None
+        self._lib = cosysairsim
+        _ensure_event_loop()
+        api = cosysairsim.MultirotorClient.__new__(cosysairsim.MultirotorClient)
+        api.client = _session_types()(self.host, self.port)
+        api.client.deadline_s, self._field = self.connect_timeout_s, "dynamics.connect_timeout_s"
+        self._api = api
+        try:
+            self.call("ping", "connecting", api.ping)
+        except BaseException:
+            self.close()
+            raise
+        api.client.deadline_s, self._field = self.timeout_s, "dynamics.timeout_s"
+        log.info("connected to the simulator at %s", self.address)
+
+    def _probe(self) -> None:
+        """A plain TCP connection first: a refused or unroutable address fails within
+        ``connect_timeout_s`` with the hint of how to start a simulator."""
+        try:
+            with socket.create_connection((self.host, self.port), self.connect_timeout_s):
+                pass
+        except OSError as e:
+            reason = "timed out" if isinstance(e, TimeoutError) else (e.strerror or str(e))
+            raise AirSimError(
+                f"no simulator at {self.address} ({reason} within "
+                f"{self.connect_timeout_s:g} s); {START_HINT}"
+            ) from None
+
+    # Calls -----------------------------------------------------------------------------
+
+    def call(self, method: str, what: str, fn, *args: Any) -> Any:
+        """``fn(*args)`` (a library method that sends ``method``), every argument made plain;
+        its faults as :class:`AirSimError` saying ``what`` was awaited."""
+        return self._guard(method, what, lambda: fn(*plain(list(args))))
+
+    def _guard(self, method: str, what: str, thunk) -> Any:
+        from msgpackrpc.error import RPCError
+
+        if self._api is None or self._api.client._transport is None:
+            raise AirSimError(f"simulator at {self.address}: the connection is closed ({what})")
+        try:
+            return thunk()
+        except RPCError as e:
+            reason = e.args[0] if e.args else e
+            if isinstance(reason, _Expired):
+                wait = self._api.client.deadline_s
+                raise AirSimError(
+                    f"simulator at {self.address} stopped answering: no answer to {method} "
+                    f"({what}) within {wait:g} s ({self._field})"
+                ) from None
+            if isinstance(reason, _Lost) or "connection" in str(reason).lower():
+                raise AirSimError(
+                    f"lost the connection to the simulator at {self.address} while waiting for "
+                    f"{method} ({what}); restart it and resume the run"
+                ) from None
+            raise AirSimError(
+                f"simulator at {self.address} refused {method} ({what}): {reason}"
+            ) from None
+
+    def send(self, method: str, *args: Any):
+        """Send ``method`` without waiting for its answer (a future for :meth:`gather`)."""
+        if self._api is None or self._api.client._transport is None:
+            raise AirSimError(f"simulator at {self.address}: the connection is closed ({method})")
+        return self._api.client.call_async(method, *plain(list(args)))
+
+    def gather(self, futures: Sequence[Any], method: str, what: str) -> list[Any]:
+        """The answers to futures sent together, within one ``timeout_s`` deadline."""
+        deadline = time.monotonic() + self.timeout_s
+        session = self._api.client
+        return [
+            self._guard(
+                method, what, lambda f=f: session.wait(f, max(0.0, deadline - time.monotonic()))
+            )
+            for f in futures
+        ]
+
+    # What a lock-step loop uses ----------------------------------------------------------
+
+    def vehicles(self) -> list[str]:
+        """The simulator's vehicle names (``listVehicles``)."""
+        return [str(v) for v in self.call("listVehicles", "its vehicles", self._api.listVehicles)]
+
+    def require_vehicles(self, names: Sequence[str]) -> None:
+        """Raise :class:`AirSimError` listing the simulator's vehicles if one of ``names`` is
+        not among them."""
+        have = self.vehicles()
+        missing = [n for n in names if n not in have]
+        if missing:
+            raise AirSimError(
+                f"simulator at {self.address} has no vehicle {', '.join(map(repr, missing))}; "
+                f"its vehicles: {', '.join(have) or 'none'} (dynamics.attacker_name, "
+                "dynamics.defender_name; settings.json Vehicles)"
+            )
+
+    def settings(self) -> dict[str, Any]:
+        """The simulator's settings.json (``getSettingsString``), {} if it gives none."""
+        text = self.call("getSettingsString", "its settings", self._api.getSettingsString)
+        try:
+            parsed = json.loads(text) if text else {}
+        except (TypeError, ValueError):
+            log.warning("simulator at %s: settings string is not JSON; ignored", self.address)
+            return {}
+        return parsed if isinstance(parsed, dict) else {}
+
+    def pause(self, paused: bool = True) -> None:
+        """Pause (or release) the simulation and check that it took."""
+        self.call("simPause", "pausing", self._api.simPause, bool(paused))
+        now = self.call("simIsPaused", "pause state", self._api.simIsPause)
+        if bool(now) != bool(paused):
+            raise AirSimError(f"simulator at {self.address}: simPause({paused}) did not take")
+
+    def reset(self) -> None:
+        """Every vehicle back to its spawn point at rest (``reset``); API control and arming
+        are cleared by it: :meth:`take_control` again."""
+        self.call("reset", "resetting the simulation", self._api.reset)
+
+    def take_control(self, name: str) -> None:
+        """API control on and armed (again after any simulator ``reset``)."""
+        self.call("enableApiControl", f"control of {name}", self._api.enableApiControl, True, name)
+        self.call("armDisarm", f"arming {name}", self._api.armDisarm, True, name)
+
+    def set_position(self, name: str, position_ned: Sequence[float]) -> None:
+        """Place ``name`` at ``position_ned`` (its spawn-relative NED frame), level, with
+        collisions ignored for the placement."""
+        lib = self._lib
+        pose = lib.Pose(lib.Vector3r(*plain(list(position_ned))), lib.Quaternionr())
+        self.call("simSetVehiclePose", f"placing {name}", self._api.simSetVehiclePose,
+                  pose, True, name)  # fmt: skip
+
+    def move_velocity(self, name: str, velocity_ned: Sequence[float], duration_s: float):
+        """Command ``name``'s velocity (NED m/s) for ``duration_s`` sim seconds; not awaited."""
+        vx, vy, vz = plain(list(velocity_ned))
+        return self.send(
+            "moveByVelocity", vx, vy, vz, float(duration_s),
+            self._lib.DrivetrainType.MaxDegreeOfFreedom, self._lib.YawMode(), name,
+        )  # fmt: skip
+
+    def continue_for(self, seconds: float, what: str) -> None:
+        """Run the paused simulation for ``seconds`` (of the simulator's wall clock) and wait
+        until it is paused again."""
+        if not (isinstance(seconds, (int, float)) and math.isfinite(seconds) and seconds > 0):
+            raise ValueError(f"seconds must be > 0, got {seconds!r}")
+        self.call("simContinueForTime", what, self._api.simContinueForTime, float(seconds))
+
+    def read(self, names: Sequence[str], what: str) -> tuple[list[VehicleState], list[bool]]:
+        """Every vehicle's state and collision flag, sent together; the collision flag clears
+        on read (read it once per step)."""
+        lib = self._lib
+        states = [self.send("getMultirotorState", n) for n in names]
+        hits = [self.send("simGetCollisionInfo", n) for n in names]
+        raw_states = self.gather(states, "getMultirotorState", what)
+        raw_hits = self.gather(hits, "simGetCollisionInfo", what)
+        out = []
+        for raw in raw_states:
+            s = lib.MultirotorState.from_msgpack(raw)
+            k = s.kinematics_estimated
+            out.append(VehicleState(_triple(k.position), _triple(k.linear_velocity),
+                                    int(s.timestamp)))  # fmt: skip
+        return out, [bool(lib.CollisionInfo.from_msgpack(h).has_collided) for h in raw_hits]
+
+    def close(self) -> None:
+        """Close the connection (the simulation stays as it is)."""
+        if self._api is not None and self._api.client._transport is not None:
+            self._api.client.close()
+        self._api = None

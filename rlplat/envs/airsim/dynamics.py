@@ -1,0 +1,237 @@
+"""``AirSimDynamics``: the drones of one env flown in an AirSim-protocol simulator, in lock step.
+
+The contract of :mod:`rlplat.envs.dynamics` (``position``/``velocity`` (N, D, 3) ENU world,
+``max_speed`` (N, D), ``reset``, ``advance``) with the physics done by the simulator at one
+endpoint (N = 1: an env batch of several simulators is a TorchRL ``ParallelEnv`` of these, see
+``rlplat.experiment.factory``). The simulation stays paused between calls:
+
+- ``advance(command, period)``: each drone's command, clipped per axis to its ``max_speed``,
+  goes out ENU -> NED as ``moveByVelocity`` lasting ``period + move_margin_s`` (so it never
+  lapses into simple_flight's hover failsafe during the step); then ``simContinueForTime`` of
+  ``period / clock_speed`` (the call counts the simulator's wall clock); then every drone's
+  state and collision flag are read. The sim time that passed is measured from the state
+  timestamps; off by more than ``step_tolerance_s`` it is an error or a logged warning
+  (``on_time_mismatch``), never silent.
+- ``reset``: the simulation is reset (every vehicle at rest at its spawn point), paused again,
+  each drone given API control and armed again (a reset clears both) and placed at its start
+  (ENU world -> NED world -> the vehicle's own spawn-relative frame, spawn points from the
+  simulator's settings.json, ``spawn`` for those it lacks) with ``simSetVehiclePose``; its
+  collision flag is read (cleared). The state the simulator then reports is the drone's
+  position and velocity.
+
+Frames are converted only through :mod:`rlplat.envs.airsim.frames`. ``collided`` (N, D) bool
+holds which drones the simulator reported a collision for during the last step (logged; a
+capture stays the env's distance test). The client library is imported when the first
+simulator is connected, not when this module is.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping, Sequence
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+from rlplat.envs.airsim.client import AirSimClient, AirSimError, parse_endpoint
+from rlplat.envs.airsim.frames import (
+    enu_to_ned,
+    local_to_world,
+    ned_to_enu,
+    spawn_offsets,
+    world_to_local,
+)
+from rlplat.envs.airsim.settings import vehicle_names
+from rlplat.envs.dynamics import DroneDynamics
+from rlplat.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+#: What a step whose sim time differs from the control period does.
+TIME_MISMATCH = ("error", "warn")
+
+
+class AirSimDynamics(DroneDynamics):
+    """The drones of one env in the simulator at ``endpoints[0]`` (one endpoint, N = 1).
+
+    Args:
+        num_envs: N, must be 1 (one simulator per env).
+        num_drones: D, the env's drones: ``num_attackers`` attackers, then the defenders.
+        num_attackers: how many of the drones are attackers (names their vehicles).
+        device: torch device of the state tensors.
+        endpoints: ``["host:port"]``, the simulator's RPC server.
+        attacker_name: vehicle name of the first attacker (the i-th: ``f"{name}{i}"``).
+        defender_name: vehicle name of the first defender (the i-th: ``f"{name}{i}"``).
+        connect_timeout_s: s, the longest wait for the simulator to accept and answer.
+        timeout_s: s, the longest wait for any later answer (must exceed one control period
+            of simulator wall time, ``period / clock_speed``).
+        step_tolerance_s: s, the largest accepted difference between the sim time a step
+            advanced (from the state timestamps) and the control period.
+        on_time_mismatch: ``error`` or ``warn`` (log a warning and go on) beyond the tolerance.
+        clock_speed: the simulator's ``ClockSpeed`` (settings.json); a step of ``period``
+            sim seconds asks for ``period / clock_speed`` seconds of its wall clock.
+        spawn: vehicle name -> (x, y, z) NED metres of its spawn point, as settings.json's
+            ``X``/``Y``/``Z``, for vehicles or coordinates the simulator's settings lack.
+        move_margin_s: s, how much longer than a control period each velocity command lasts.
+    """
+
+    def __init__(
+        self,
+        *,
+        num_envs: int,
+        num_drones: int,
+        num_attackers: int = 1,
+        device: torch.device | str = "cpu",
+        endpoints: Sequence[str] = ("127.0.0.1:41451",),
+        attacker_name: str = "Attacker",
+        defender_name: str = "Defender",
+        connect_timeout_s: float = 10.0,
+        timeout_s: float = 10.0,
+        step_tolerance_s: float = 0.02,
+        on_time_mismatch: Literal["error", "warn"] = "error",
+        clock_speed: float = 1.0,
+        spawn: Mapping[str, Sequence[float]] | None = None,
+        move_margin_s: float = 0.1,
+    ) -> None:
+        super().__init__(num_envs=num_envs, num_drones=num_drones, device=device, physics_dt=0.003)
+        if num_envs != 1 or isinstance(endpoints, str) or len(endpoints) != 1:
+            raise ConfigError(
+                f"dynamics.endpoints: one simulator per env, got {len(endpoints)} endpoint(s) "
+                f"for {num_envs} env(s) (several simulators fly as a parallel env)"
+            )
+        parse_endpoint(endpoints[0])
+        for name, value in (
+            ("connect_timeout_s", connect_timeout_s),
+            ("timeout_s", timeout_s),
+            ("clock_speed", clock_speed),
+            ("move_margin_s", move_margin_s),
+        ):
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ConfigError(f"dynamics.{name}: must be a finite number > 0, got {value!r}")
+        if not step_tolerance_s >= 0:
+            raise ConfigError(f"dynamics.step_tolerance_s: must be >= 0, got {step_tolerance_s!r}")
+        if on_time_mismatch not in TIME_MISMATCH:
+            raise ConfigError(
+                f"dynamics.on_time_mismatch: unknown {on_time_mismatch!r}; valid: error, warn"
+            )
+        if not 0 <= num_attackers <= num_drones:
+            raise ValueError(f"num_attackers must be in [0, {num_drones}], got {num_attackers}")
+        self.names = vehicle_names(
+            num_attackers, num_drones - num_attackers, attacker_name, defender_name
+        )
+        self.step_tolerance_s, self.on_time_mismatch = float(step_tolerance_s), on_time_mismatch
+        self.clock_speed, self.move_margin_s = float(clock_speed), float(move_margin_s)
+        self.collided = torch.zeros(num_envs, num_drones, dtype=torch.bool, device=self.device)
+        self.last_advance_s = float("nan")  # sim seconds the last step advanced
+
+        # Connect, check the vehicles and the clock, read the spawn points; then pause.
+        self.client = AirSimClient(
+            endpoints[0], connect_timeout_s=connect_timeout_s, timeout_s=timeout_s
+        )
+        try:
+            self.client.require_vehicles(self.names)
+            settings = self.client.settings()
+            self._check_clock(settings)
+            fallback = {k: [float(x) for x in v] for k, v in (spawn or {}).items()}
+            self.spawn = spawn_offsets(settings, self.names, fallback)
+            self.client.pause(True)
+            for name in self.names:
+                self.client.take_control(name)
+            self._timestamp_ns = self._read("reading the drones after connecting")
+        except BaseException:
+            self.client.close()
+            raise
+        log.info("flying %s on %s (spawn NED %s)", ", ".join(self.names),
+                 self.client.address, self.spawn)  # fmt: skip
+
+    def _check_clock(self, settings: Mapping) -> None:
+        speed = settings.get("ClockSpeed")
+        if isinstance(speed, (int, float)) and not math.isclose(speed, self.clock_speed):
+            raise ConfigError(
+                f"dynamics.clock_speed: {self.clock_speed:g}, the simulator at "
+                f"{self.client.address} runs ClockSpeed {speed:g} (its settings.json)"
+            )
+
+    # The dynamics contract -------------------------------------------------------------
+
+    def advance(self, command: Tensor, period: float) -> None:
+        """Fly every drone for ``period`` sim seconds under its velocity command.
+
+        Args:
+            command: (1, D, 3) float32, goal velocity m/s ENU; clipped per axis to ±max_speed.
+            period: control period in seconds (> 0).
+
+        Raises:
+            AirSimError: the simulator failed, or (``on_time_mismatch=error``) the step's sim
+                time differs from ``period`` by more than ``step_tolerance_s``.
+        """
+        if not period > 0:
+            raise ValueError(f"period must be > 0, got {period!r}")
+        self._check_shape("command", command, (self.num_envs, self.num_drones, 3))
+        bound = self.max_speed.unsqueeze(-1)
+        command = torch.clamp(command.detach().to(self.velocity), -bound, bound)
+        ned = enu_to_ned(command[0].double().cpu()).tolist()
+        for name, velocity in zip(self.names, ned, strict=True):
+            self.client.move_velocity(name, velocity, period + self.move_margin_s)
+        self.client.continue_for(period / self.clock_speed, f"a step of {period:g} s")
+        before = self._timestamp_ns
+        self._timestamp_ns = self._read(f"the drones after a step of {period:g} s")
+        self._check_time(before, self._timestamp_ns, period)
+
+    def _reset_internal(self, mask: Tensor) -> None:
+        """Reset the simulation (every drone at rest), pause it, take control of the drones
+        again, place them at ``position`` (set by ``reset``) and read back what the simulator
+        reports; collision flags cleared."""
+        if not bool(mask[0]):
+            return
+        self.client.reset()
+        self.client.pause(True)
+        world_ned = enu_to_ned(self.position[0].double().cpu())
+        for i, name in enumerate(self.names):
+            self.client.take_control(name)
+            self.client.set_position(name, world_to_local(world_ned[i], self.spawn[name]).tolist())
+        self._timestamp_ns = self._read("the drones after placing them")
+        self.collided = torch.zeros_like(self.collided)
+
+    # Helpers ---------------------------------------------------------------------------
+
+    def _read(self, what: str) -> int:
+        """Read every drone's state into ``position``/``velocity`` (ENU world) and their
+        collision flags into ``collided``; returns the simulator's timestamp (ns)."""
+        states, hits = self.client.read(self.names, what)
+        spawn = torch.tensor([self.spawn[n] for n in self.names], dtype=torch.float64)
+        local = torch.tensor([s.position for s in states], dtype=torch.float64)
+        velocity = torch.tensor([s.velocity for s in states], dtype=torch.float64)
+        position = ned_to_enu(local_to_world(local, spawn))
+        self.position = position.to(self.position).unsqueeze(0)
+        self.velocity = ned_to_enu(velocity).to(self.velocity).unsqueeze(0)
+        self.collided = torch.tensor([hits], dtype=torch.bool, device=self.device)
+        if any(hits):
+            log.info(
+                "collision reported for %s", [n for n, h in zip(self.names, hits, strict=True) if h]
+            )
+        stamps = {s.timestamp_ns for s in states}
+        if len(stamps) > 1:
+            log.debug("vehicles report different timestamps: %s", sorted(stamps))
+        return states[0].timestamp_ns
+
+    def _check_time(self, before: int, after: int, period: float) -> None:
+        self.last_advance_s = (after - before) / 1e9
+        gap = self.last_advance_s - period
+        if abs(gap) <= self.step_tolerance_s:
+            return
+        message = (
+            f"simulator at {self.client.address}: a step advanced {self.last_advance_s:.4f} s of "
+            f"sim time, the control period is {period:g} s (dynamics.step_tolerance_s="
+            f"{self.step_tolerance_s:g}; check dynamics.clock_speed against the simulator's "
+            "ClockSpeed)"
+        )
+        if self.on_time_mismatch == "error":
+            raise AirSimError(message)
+        log.warning("%s", message)
+
+    def close(self) -> None:
+        """Close the connection to the simulator."""
+        self.client.close()
