@@ -207,7 +207,13 @@ class PursuitParallelEnv(ParallelEnv):
         return None
 
     def close(self, *, raise_if_closed: bool = True) -> None:
+        """Shut the workers down; after a worker fault (already reported) the others are
+        terminated without a second error."""
         try:
             super().close(raise_if_closed=raise_if_closed)
+        except RuntimeError:
+            if self._fault() is None:
+                raise
+            self.is_closed = True
         finally:
             shutil.rmtree(self.__dict__.get("_fault_dir", ""), ignore_errors=True)

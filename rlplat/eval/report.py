@@ -118,7 +118,8 @@ def write_report(
     md = [
         f"# Evaluation: {who} on the {s['split']} split",
         "",
-        f"- run: `{s['run_dir']}` (drone `{s['drone']}`, seed {s['seed']})",
+        f"- run: `{s['run_dir']}` (drone `{s['drone']}`, seed {s['seed']}, "
+        f"dynamics `{s.get('dynamics', '?')}`)",
         f"- policy: `{s['policy']}`"
         + (f", checkpoint `{s['checkpoint']}`" if s["checkpoint"] else ""),
         f"- scenarios: {s['scenarios']} from `{s['scenario_dir']}`, "

@@ -20,6 +20,7 @@ reads of several vehicles are sent together and awaited together: one round trip
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import math
@@ -38,7 +39,7 @@ log = logging.getLogger(__name__)
 START_HINT = (
     "start AirSim/Unreal with the settings.json of `python -m rlplat.airsim settings out=PATH` "
     "(SimMode Multirotor, ApiServerPort = this port), or the loopback test server with "
-    "`python -m rlplat.airsim serve`"
+    "`python -m rlplat.airsim serve --port PORT`"
 )
 
 
@@ -106,6 +107,12 @@ class _Expired(Exception):
     """No answer before the deadline."""
 
 
+def _retrieved(task) -> None:
+    """Mark a send task's exception as seen (the call it belongs to reports the loss)."""
+    if not task.cancelled():
+        task.exception()
+
+
 def _session_types():
     """The msgpack-rpc session and transport the library rides on, with rlplat's policy: no
     silent reconnect after a loss, and read errors kept quiet (the loss is reported)."""
@@ -115,6 +122,7 @@ def _session_types():
 
     class Socket(tcp.ClientSocket):
         async def on_connect(self):
+            self._stream.set_nodelay(True)  # small requests go out at once (no Nagle delay)
             await self._transport.on_connect(self)
             await self.start_read(silent_errors=True)
 
@@ -141,6 +149,11 @@ def _session_types():
                 unpack_encoding="utf-8",
             )
 
+        def send_request(self, method, args):
+            future = super().send_request(method, args)
+            future.task.add_done_callback(_retrieved)  # a send on a lost connection: reported
+            return future
+
         def call(self, method, *args):
             return self.wait(self.call_async(method, *args), self.deadline_s)
 
@@ -160,6 +173,17 @@ def _session_types():
                 ioloop.remove_timeout(handle)
 
     return Session
+
+
+def _ensure_event_loop() -> None:
+    """The library runs tornado on this thread's asyncio loop: make one where there is none
+    (or only a closed one)."""
+    try:
+        loop = asyncio.get_event_loop_policy().get_event_loop()
+    except RuntimeError:
+        loop = None
+    if loop is None or loop.is_closed():
+        asyncio.set_event_loop(asyncio.new_event_loop())
 
 
 class AirSimClient:
@@ -192,6 +216,7 @@ class AirSimClient:
                 "dynamics=airsim needs the cosysairsim client library: pip install -e .[airsim]"
             ) from None
         self._lib = cosysairsim
+        _ensure_event_loop()
         api = cosysairsim.MultirotorClient.__new__(cosysairsim.MultirotorClient)
         api.client = _session_types()(self.host, self.port)
         api.client.deadline_s = self.connect_timeout_s

@@ -1,0 +1,427 @@
+"""``dynamics=airsim`` against the loopback AirSim test server, through the real client library.
+
+These tests prove protocol conformance of the client side (the calls, their arguments and
+timing, frames, faults, the wiring into envs, training and evaluation): the test server's
+physics is a small first-order model, so nothing here says how well rlplat flies in Unreal.
+"""
+
+import json
+import math
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import torch
+from torchrl.envs.utils import check_env_specs
+
+from rlplat import make_env
+from rlplat.agents.checkpoint import load_checkpoint
+from rlplat.envs.airsim import enu_to_ned, make_settings, vehicle_names
+from rlplat.envs.airsim.client import AirSimError, parse_endpoint, plain
+from rlplat.envs.airsim.dynamics import AirSimDynamics
+from rlplat.envs.airsim.testserver import TestServer
+from rlplat.envs.dynamics import VelocityDynamics
+from rlplat.envs.parallel import WorkerFault
+from rlplat.errors import ConfigError
+from rlplat.experiment.evaluation import evaluate_run
+from tests.conftest import ROOT
+
+pytest.importorskip("cosysairsim")
+
+PERIOD = 0.1  # s, env.control_period
+# Spawn points away from the origin (ENU world): every position crosses a vehicle's own frame.
+SPAWN_ENU = {"Attacker": (30.0, -20.0, 0.0), "Defender": (-10.0, 5.0, 0.0)}
+SETTINGS = make_settings(vehicle_names(1, 1), SPAWN_ENU)
+
+
+def serve(**kwargs) -> TestServer:
+    return TestServer(SETTINGS, **kwargs).start()
+
+
+@pytest.fixture
+def server():
+    srv = serve()
+    yield srv
+    srv.stop()
+
+
+def airsim(*endpoints: str, **knobs) -> list[str]:
+    """The overrides of ``dynamics=airsim`` on ``endpoints`` (short waits for the tests)."""
+    knobs = {"connect_timeout_s": 2.0, "timeout_s": 1.0, **knobs}
+    return [
+        "dynamics=airsim",
+        f"dynamics.endpoints=[{','.join(endpoints)}]",
+        *(f"dynamics.{k}={v}" for k, v in knobs.items()),
+    ]
+
+
+def airsim_env(scenarios, *endpoints: str, split="test", **knobs):
+    return make_env(*airsim(*endpoints, **knobs), scenarios=scenarios, split=split,
+                    num_envs=len(endpoints))  # fmt: skip
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+# Wire values and addresses -----------------------------------------------------------------
+
+
+def test_plain_turns_numpy_and_torch_scalars_into_python_ones():
+    values = plain([np.float32(1.5), np.int64(3), torch.tensor(2.0), np.bool_(True), "x", 4])
+    assert values == [1.5, 3, 2.0, True, "x", 4]
+    assert [type(v) for v in values] == [float, int, float, bool, str, int]
+
+
+@pytest.mark.parametrize("bad", ["foo", "127.0.0.1:0", "host:99999", ":41451", "h:p", 41451])
+def test_a_bad_endpoint_is_a_one_line_error_naming_the_field(bad):
+    with pytest.raises(ConfigError, match=r"^dynamics\.endpoints: .* is not host:port"):
+        parse_endpoint(bad)
+    assert parse_endpoint("localhost:41451") == ("localhost", 41451)
+
+
+def test_importing_the_envs_does_not_import_the_client_library():
+    code = (
+        "import sys, rlplat.envs.pursuit, rlplat.experiment.factory, rlplat.experiment.schema\n"
+        "from rlplat.envs.dynamics import DYNAMICS\n"
+        "assert DYNAMICS['airsim'].__name__ == 'AirSimDynamics'\n"
+        "print(sorted(m for m in sys.modules if 'airsim' in m and 'rlplat' not in m))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
+# The env on one simulator ------------------------------------------------------------------
+
+
+def test_protocol_conformance_check_env_specs_and_a_rollout(server, scenarios):
+    env = airsim_env(scenarios, server.address)
+    assert env.batch_size == torch.Size([1])
+    check_env_specs(env, seed=0)
+    server.start_recording()
+    td = env.rollout(20, break_when_any_done=False)
+    calls = [r for r in server.take_recording() if "call" in r]
+    assert td.batch_size == torch.Size([1, 20]) and torch.isfinite(td["next", "positions"]).all()
+    moves = [c["params"] for c in calls if c["call"] == "moveByVelocity"]
+    continues = [c["params"] for c in calls if c["call"] == "simContinueForTime"]
+    assert len(continues) == 20 and len(moves) == 40  # every drone commanded every step
+    assert all(p == [PERIOD] for p in continues)
+    assert all(type(x) is float for p in moves for x in p[:4])  # plain floats on the wire
+    assert all(p[3] == pytest.approx(PERIOD + 0.1) for p in moves)  # outlasts the step
+    assert {p[-1] for p in moves} == {"Attacker", "Defender"}
+    assert server.snapshot()["paused"]
+    env.close()
+
+
+def test_frames_end_to_end_drones_spawned_away_from_the_origin_start_where_the_scenario_says(
+    server, scenarios
+):
+    env = airsim_env(scenarios, server.address)
+    td = env.reset()
+    index = int(td["scenario_index"])
+    sc = env.scenarios[index]
+    want_enu = torch.cat([sc["attacker_start"], sc["defender_start"]])  # (2, 3) world ENU
+    torch.testing.assert_close(td["positions"][0], want_enu, atol=1e-4, rtol=0)
+    world = server.snapshot()["vehicles"]  # the server's own truth: NED world
+    for i, name in enumerate(("Attacker", "Defender")):
+        assert world[name]["position"] == pytest.approx(enu_to_ned(want_enu[i].tolist()), abs=1e-4)
+    # Flying east (ENU +x) is flying NED +y in the server's world, from each spawn point alike.
+    before = server.snapshot()["vehicles"]
+    for _ in range(10):
+        env.dynamics.advance(torch.tensor([[[2.0, 0.0, 0.0], [2.0, 0.0, 0.0]]]), PERIOD)
+    after = server.snapshot()["vehicles"]
+    for i, name in enumerate(("Attacker", "Defender")):
+        moved = np.subtract(after[name]["position"], before[name]["position"])
+        assert moved[1] > 0.5 and abs(moved[0]) < 1e-6 and abs(moved[2]) < 1e-6
+        got = env.dynamics.position[0, i].tolist()
+        assert got == pytest.approx(list(enu_to_ned(after[name]["position"])), abs=1e-4)
+    env.close()
+
+
+def test_same_commands_fly_the_same_trajectory_as_dynamics_velocity_with_the_servers_constants(
+    server,
+):
+    # The test server's world is the velocity model (drag 0 by default) sub-stepped at 3 ms; the
+    # embedded model with the same constants splits each 0.1 s period into 34 equal sub-steps
+    # instead of 33 of 3 ms and one of 1 ms. The first-order part is integrated exactly either
+    # way, so the trajectories differ only by the trapezoidal position update over different
+    # sub-steps (O(dt^2) per step, < 1e-5 m here) and float32 rounding of positions of ~30 m
+    # (~4e-6 m a step): 1 mm over 6 s of flight bounds both with a wide margin.
+    names = dict(num_envs=1, num_drones=2)
+    sim = AirSimDynamics(**names, endpoints=[server.address], timeout_s=1.0)
+    ref = VelocityDynamics(**names, physics_dt=0.003, drag_xy=0.0, drag_z=0.0)
+    start = torch.tensor([[[3.0, -4.0, 12.0], [-6.0, 2.0, 20.0]]])
+    for dyn in (sim, ref):
+        dyn.reset(torch.tensor([True]), start, torch.zeros_like(start), torch.full((1, 2), 4.0))
+    gen = torch.Generator().manual_seed(0)
+    gap = 0.0
+    for step in range(60):
+        if step % 10 == 0:  # a new command every second, some beyond max_speed (clipped)
+            command = (torch.rand(1, 2, 3, generator=gen) - 0.5) * 12.0
+        for dyn in (sim, ref):
+            dyn.advance(command, PERIOD)
+        gap = max(gap, (sim.position - ref.position).abs().max().item())
+        assert sim.last_advance_s == pytest.approx(PERIOD, abs=1e-9)
+    assert gap < 1e-3
+    assert (sim.position - start).norm(dim=-1).min() > 2.0  # they did fly
+    sim.close()
+
+
+# Timing -----------------------------------------------------------------------------------
+
+
+def test_a_step_off_the_control_period_is_an_error_or_a_warning(scenarios, caplog):
+    # The simulator runs twice as fast as its settings say: each step advances 0.2 s.
+    with TestServer(SETTINGS, clock_speed=2.0) as srv:
+        env = airsim_env(scenarios, srv.address)
+        env.reset()
+        with pytest.raises(AirSimError, match=r"advanced 0\.2000 s of sim time.*period is 0\.1"):
+            env.rand_step()
+        env.close()
+        env = airsim_env(scenarios, srv.address, on_time_mismatch="warn")
+        env.reset()
+        with caplog.at_level("WARNING", logger="rlplat.envs.airsim.dynamics"):
+            env.rand_step()
+            env.rand_step()
+        assert sum("advanced 0.2000 s" in r.message for r in caplog.records) == 2
+        env.close()
+
+
+def test_clock_speed_asks_for_period_over_k_of_the_simulators_wall_clock(scenarios):
+    settings = {**SETTINGS, "ClockSpeed": 4.0}
+    with TestServer(settings) as srv:
+        env = airsim_env(scenarios, srv.address, clock_speed=4.0)
+        env.reset()
+        srv.start_recording()
+        env.rand_step()
+        calls = [r for r in srv.take_recording() if r.get("call") == "simContinueForTime"]
+        assert calls[0]["params"] == [pytest.approx(PERIOD / 4.0)]
+        assert env.dynamics.last_advance_s == pytest.approx(PERIOD, abs=1e-9)
+        env.close()
+        with pytest.raises(ConfigError, match=r"dynamics.clock_speed: 1, .* ClockSpeed 4"):
+            airsim_env(scenarios, srv.address)
+
+
+# Faults: one line each, within a bounded time ----------------------------------------------
+
+
+def test_no_simulator_at_the_address_names_it_and_how_to_start_one(scenarios):
+    port = free_port()
+    t0 = time.monotonic()
+    with pytest.raises(AirSimError) as info:
+        airsim_env(scenarios, f"127.0.0.1:{port}")
+    message = str(info.value)
+    assert time.monotonic() - t0 < 2.0 + 1.0  # connect_timeout_s, and then some
+    assert f"no simulator at 127.0.0.1:{port}" in message and "\n" not in message
+    assert "settings.json" in message and "python -m rlplat.airsim serve" in message
+
+
+def test_a_simulator_that_accepts_but_never_answers_fails_within_the_connect_timeout(
+    server, scenarios
+):
+    server.stall()
+    t0 = time.monotonic()
+    with pytest.raises(AirSimError, match=r"no answer to ping .* within 2 s"):
+        airsim_env(scenarios, server.address)
+    assert 1.9 < time.monotonic() - t0 < 4.0
+    server.unstall()
+
+
+def test_a_simulator_that_stops_answering_fails_after_timeout_s_naming_the_call(server, scenarios):
+    env = airsim_env(scenarios, server.address)
+    env.reset()
+    env.rand_step()
+    server.stall()
+    t0 = time.monotonic()
+    with pytest.raises(AirSimError) as info:
+        env.rand_step()
+    waited = time.monotonic() - t0
+    server.unstall()
+    assert 0.9 < waited < 2.5
+    message = str(info.value)
+    assert f"simulator at {server.address} stopped answering" in message
+    assert "simContinueForTime" in message and "dynamics.timeout_s" in message
+    env.close()
+
+
+def test_an_unknown_vehicle_lists_the_simulators_vehicles(server, scenarios):
+    with pytest.raises(AirSimError) as info:
+        airsim_env(scenarios, server.address, attacker_name="Hunter")
+    message = str(info.value)
+    assert "no vehicle 'Hunter'" in message and "its vehicles: Attacker, Defender" in message
+
+
+def test_a_connection_lost_mid_run_is_that_error_at_once(server, scenarios):
+    env = airsim_env(scenarios, server.address, timeout_s=30.0)
+    env.reset()
+    env.rand_step()
+    server.drop_connections()
+    t0 = time.monotonic()
+    with pytest.raises(
+        AirSimError, match=f"lost the connection to the simulator at {server.address}"
+    ):
+        env.rand_step()
+    assert time.monotonic() - t0 < 5.0  # not the 30 s timeout
+    with pytest.raises(AirSimError, match="connection is closed"):  # no silent reconnect
+        env.rand_step()
+    env.close()
+
+
+def test_num_envs_must_match_the_endpoints(scenarios):
+    with pytest.raises(ConfigError, match=r"^num_envs: 2, dynamics.endpoints names 1 simulator"):
+        make_env(*airsim("127.0.0.1:41451"), scenarios=scenarios, num_envs=2)
+
+
+# Several simulators: a TorchRL ParallelEnv of batch [N] -----------------------------------
+
+
+@pytest.mark.slow
+def test_two_simulators_step_in_parallel_as_one_env_of_batch_2(scenarios):
+    # Real-time servers: a step's simContinueForTime takes its 0.1 s of wall time, so 20 steps
+    # take ~2 s when the two simulators are stepped at once and >= 4 s one after the other.
+    servers = [serve(realtime=True), serve(realtime=True)]
+    try:
+        env = airsim_env(scenarios, *(s.address for s in servers))
+        assert env.batch_size == torch.Size([2])
+        check_env_specs(env, seed=0)
+        env.set_seed(0)  # restarts the walks
+        td = env.reset()
+        assert td["scenario_index"].view(-1).tolist() == [0, 1]  # each its share of the split
+        clocks = [s.snapshot()["t_ns"] for s in servers]
+        t0 = time.monotonic()
+        out = env.rollout(20, auto_reset=False, tensordict=td, break_when_any_done=False)
+        wall = time.monotonic() - t0
+        assert out.batch_size == torch.Size([2, 20])
+        advanced = [s.snapshot()["t_ns"] - c for s, c in zip(servers, clocks, strict=True)]
+        assert advanced == [round(20 * PERIOD * 1e9)] * 2
+        assert 2.0 <= wall < 3.5
+        env.close()
+    finally:
+        for s in servers:
+            s.stop()
+
+
+@pytest.mark.slow
+def test_a_fault_in_one_worker_is_its_one_line_error(scenarios):
+    servers = [serve(), serve()]
+    try:
+        env = airsim_env(scenarios, *(s.address for s in servers))
+        env.reset()
+        servers[1].drop_connections()
+        with pytest.raises(WorkerFault) as info:  # an RlplatError: one line and exit 2 in a CLI
+            env.rand_step()
+        assert str(info.value).startswith("env worker 1: lost the connection to the simulator")
+        assert "\n" not in str(info.value)
+        env.close()
+    finally:
+        for s in servers:
+            s.stop()
+
+
+# Training and evaluation through the command line -----------------------------------------
+
+
+@pytest.mark.slow
+def test_a_trained_checkpoint_is_evaluated_on_the_test_server_through_evaluate_py(
+    scenarios, tiny_run, run_python, tmp_path
+):
+    run_dir = tmp_path / "run"
+    tiny_run(scenarios, run_dir, "train.threads=1")  # on the embedded velocity model
+    with TestServer(SETTINGS) as srv:
+        res = run_python(
+            "evaluate.py", f"run_dir={run_dir}", *airsim(srv.address), "plots=false",
+            "threads=1",
+        )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-2000:]
+    out = run_dir / "eval" / "test-best-airsim"
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["dynamics"] == "airsim" and summary["scenarios"] == 16
+    rows = (out / "episodes.csv").read_text().strip().splitlines()
+    assert len(rows) == 1 + 16
+    assert "capture rate" in res.stdout and "16 test scenarios" in res.stdout
+    assert math.isfinite(summary["mean_return"])
+    assert "dynamics `airsim`" in (out / "report.md").read_text()
+    # Any other model swaps in the same way, here in-process.
+    swapped = evaluate_run(run_dir, dynamics={"name": "quadrotor"}, plots=False)
+    assert swapped.out_dir == run_dir / "eval" / "test-best-quadrotor"
+    assert swapped.summary["dynamics"] == "quadrotor" and len(swapped.rows) == 16
+    with pytest.raises(ConfigError, match=r"^dynamics.endpoints: 'nowhere' is not host:port"):
+        evaluate_run(run_dir, dynamics={"name": "airsim", "endpoints": ["nowhere"]})
+
+
+@pytest.mark.slow
+def test_training_on_airsim_stops_on_a_lost_simulator_and_resumes_once_it_is_back(
+    scenarios, tiny, train_cli, tmp_path
+):
+    port = free_port()
+    run_dir = tmp_path / "run"
+    overrides = [
+        *tiny,
+        *airsim(f"127.0.0.1:{port}", timeout_s=2.0),
+        "algo.num_envs=1",
+        f"scenarios_dir={scenarios.path}",
+        f"hydra.run.dir={run_dir}",
+        "train.threads=1",
+        "train.eval_every_frames=64",
+    ]
+    last = run_dir / "checkpoints" / "last.pt"
+    srv = TestServer(SETTINGS, port=port).start()
+    proc = subprocess.Popen(
+        [sys.executable, "train.py", *overrides, "train.total_frames=100000"],
+        cwd=ROOT,
+        stderr=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while not last.is_file() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert last.is_file(), "no checkpoint written"
+        srv.stop()  # the simulator goes away mid-run
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        srv.stop()
+    assert proc.returncode == 2
+    assert (
+        err.strip()
+        .splitlines()[-1]
+        .startswith(f"error: lost the connection to the simulator at 127.0.0.1:{port}")
+    )
+    frames = load_checkpoint(last)["counters"]["frames"]  # still loadable
+    assert frames >= 64
+
+    with TestServer(SETTINGS, port=port):  # back on the same address
+        res = train_cli(*overrides, "resume=true", f"train.total_frames={frames + 64}")
+    assert res.returncode == 0, res.stderr[-2000:]
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["frames"] >= frames + 64
+
+
+@pytest.mark.slow
+def test_training_on_two_simulators_collects_from_both_and_checkpoints_their_walks(
+    scenarios, tiny_run, tmp_path
+):
+    servers = [serve(), serve()]
+    try:
+        clocks = [s.snapshot()["t_ns"] for s in servers]
+        summary = tiny_run(
+            scenarios, tmp_path / "run", *airsim(*(s.address for s in servers)),
+            "algo.num_envs=2", "train.threads=1",
+        )  # fmt: skip
+        flown = [s.snapshot()["t_ns"] - c for s, c in zip(servers, clocks, strict=True)]
+    finally:
+        for s in servers:
+            s.stop()
+    assert summary["frames"] >= 256 and summary["test_scenarios"] == 16
+    # 256 frames, half on each simulator (the validation flies the embedded model).
+    assert all(t >= round(128 * PERIOD * 1e9) for t in flown)
+    state = load_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt")
+    assert state["scenario_rng"].shape[0] == 2  # one scenario walk per worker
