@@ -196,7 +196,10 @@ def sim2sim(
     if airsim.get("name") != "airsim":
         raise ConfigError(f"dynamics.name: sim2sim flies airsim, got {airsim.get('name')!r}")
     if reference.get("name") == "airsim":
-        raise ConfigError("reference: must be an embedded dynamics model (velocity, quadrotor)")
+        raise ConfigError(
+            "reference: must be an embedded dynamics model, got airsim (the run's own "
+            "dynamics unless given): reference=velocity or another conf/dynamics model"
+        )
     validate_dynamics_swap(airsim, run)
     validate_dynamics_swap(reference, run)
     if split not in SPLITS:
