@@ -18,8 +18,10 @@ its RPC handling included; ``wall - server``, what is left once the simulator's 
 out (the client's work and the round trips' latency, scheduling included).
 
 Resets are not timed (episodes that end are reset between timed steps). Part 2: env steps/s
-(summed over the envs) of a TorchRL ParallelEnv with 1, 2 and 4 simulators, one worker process
-each, ``env.rollout`` with random actions. Run it niced when the machine has other work:
+(summed over the envs) with 1, 2 and 4 simulators, ``env.rollout`` with random actions: one
+simulator is the single env above; several are a TorchRL ParallelEnv, one worker process per
+simulator (``main CPU``: this process's CPU time per batch step). Run it niced when the
+machine has other work:
 
     nice -n 10 .venv/bin/python benchmarks/airsim_overhead.py [--steps 1000] [--servers 1 2 4]
 """
@@ -218,20 +220,22 @@ def overhead(steps: int) -> None:
 
 
 def parallel(counts: list[int], steps: int) -> None:
-    print("Part 2: N simulators, a ParallelEnv of N workers (1 v 1); env steps/s over the envs")
-    print(f"{'N':>3} {'steps/s':>9} {'ms per batch step':>18}")
+    print("Part 2: N simulators, one env each (1 v 1; N > 1: a ParallelEnv of N worker processes)")
+    print(f"{'N':>3} {'env steps/s':>12} {'ms per batch step':>18} {'main CPU ms':>12}")
     servers = start_servers(max(counts), ())
     try:
         for n in counts:
             endpoints = ",".join(address for _, address in servers[:n])
             env = make_env("dynamics=airsim", f"dynamics.endpoints=[{endpoints}]",
                            "env.time_limit=1000", num_envs=n, split="test")  # fmt: skip
-            env.rollout(5, break_when_any_done=False)  # warm-up
-            t0 = time.perf_counter()
+            env.rollout(5, break_when_any_done=False)  # warm-up (workers started)
+            meter = Meter()
+            meter.start()
             env.rollout(steps, break_when_any_done=False)
-            wall = time.perf_counter() - t0
+            meter.stop()
             env.close()
-            print(f"{n:>3} {n * steps / wall:>9.0f} {wall / steps * 1e3:>18.2f}")
+            wall, cpu = meter.wall / steps, meter.cpu / steps
+            print(f"{n:>3} {n / wall:>12.0f} {wall * 1e3:>18.2f} {cpu * 1e3:>12.2f}", flush=True)
     finally:
         stop_servers(servers)
 
