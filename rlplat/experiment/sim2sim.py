@@ -125,7 +125,11 @@ def _fly(
         env.close()
     recorded = None
     if recorder is not None:
-        recorded = recorder.episodes([r["scenario_id"] for r in rows])
+        try:
+            recorded = recorder.episodes([r["scenario_id"] for r in rows])
+        except ValueError as err:  # not one recorded episode per scenario: numbered instead
+            log.warning("AirSim recording: %s; its episodes are numbered", err)
+            recorded = recorder.episodes()
     return _Leg(results, rows, recorded)
 
 
