@@ -29,7 +29,13 @@ from torchrl.data import Bounded
 
 from rlplat.agents.checkpoint import actor_from_state, load_checkpoint, saved_interface
 from rlplat.envs.components import OBSERVATIONS, DroneView
-from rlplat.envs.kinematics import follow_route, gather_drones, nearest, targets
+from rlplat.envs.kinematics import (
+    follow_route,
+    gather_drones,
+    intercept_action,
+    nearest,
+    targets,
+)
 from rlplat.envs.pursuit import ROLES, PursuitEnv
 from rlplat.errors import ConfigError
 
@@ -129,13 +135,8 @@ class ProportionalNavigation(_Scripted):
         own, speed, near = self._nearest(positions, max_speed, caught)
         rel = gather_drones(positions[:, self.others], near) - own
         v_other = gather_drones(velocities[:, self.others], near)
-        closing = speed - torch.sign(rel) * v_other  # per-axis closing speed at full throttle
-        t_axis = torch.where(
-            closing > 1e-6, rel.abs() / closing.clamp_min(1e-6), self.max_lead_time
-        )
-        t_go = t_axis.amax(-1, keepdim=True).clamp(max=self.max_lead_time)
-        aim = rel + self.lead * v_other * t_go
-        return self._action((self.gain * aim / speed).clamp(-1.0, 1.0))
+        action = intercept_action(rel, v_other, speed, self.gain, self.lead, self.max_lead_time)
+        return self._action(action)
 
 
 class SetpointFollower(_Scripted):
@@ -182,7 +183,7 @@ POLICIES: dict[str, Scripted] = {
 
 
 #: The scripted policy each learner is measured against on the validation split.
-REFERENCE = {"attacker": "pure_pursuit", "defender": "setpoint_follower"}
+REFERENCE = {"attacker": "proportional_navigation", "defender": "setpoint_follower"}
 
 
 def policies_for(role: str) -> list[str]:
@@ -212,7 +213,35 @@ def make_scripted_policy(name: str, env: PursuitEnv, **kwargs: Any) -> TensorDic
         team=env.group is not None,
         **{"gain": getattr(env, scripted.gain), **kwargs},
     )
+    if getattr(env.action_fn, "guided", False):
+        module = Unguided(module, env)
     return TensorDictModule(module, in_keys=list(module.in_keys), out_keys=[env.action_key])
+
+
+class Unguided(nn.Module):
+    """A scripted policy flown through a guided action (a correction to proportional
+    navigation, :class:`rlplat.envs.components.GuidedVelocityAction`): the correction that makes
+    the env fly exactly the policy's own command (for the action's ``scale >= 2``)."""
+
+    def __init__(self, policy: _Scripted, env: PursuitEnv) -> None:
+        super().__init__()
+        self.policy, self.action = policy, env.action_fn
+        self.guidance = ProportionalNavigation(
+            gain=self.action.gain,
+            lead=self.action.lead,
+            max_lead_time=self.action.max_lead_time,
+            learner=policy.learner,
+            attackers=env.num_attackers,
+            defenders=env.num_defenders,
+            team=policy.team,
+        )
+        self.in_keys = tuple(dict.fromkeys((*policy.in_keys, *self.guidance.in_keys)))
+
+    def forward(self, *inputs: Tensor) -> Tensor:
+        named = dict(zip(self.in_keys, inputs, strict=True))
+        flown = self.policy(*(named[k] for k in self.policy.in_keys))
+        guidance = self.guidance(*(named[k] for k in self.guidance.in_keys))
+        return self.action.inverse(flown, guidance)
 
 
 class NoisyPolicy:

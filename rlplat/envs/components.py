@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from rlplat.envs.kinematics import intercept_action
 from rlplat.errors import ConfigError
 
 
@@ -30,6 +31,7 @@ class DroneView:
             order; None (or K = 0) for a drone that flies alone.
         other_in_play, mate_in_play: (*B, M) and (*B, K) bool, which opponents and team-mates
             are still in play (False: a caught defender); None where no observation reads them.
+        own_max_speed: (*B,) float32 m/s, the drone's maximum speed per axis.
     """
 
     own_position: Tensor
@@ -41,6 +43,7 @@ class DroneView:
     mate_velocity: Tensor | None = None
     other_in_play: Tensor | None = None
     mate_in_play: Tensor | None = None
+    own_max_speed: Tensor | None = None
 
 
 def inside_ellipsoid(rel: Tensor, semi_axes: Tensor) -> Tensor:
@@ -73,7 +76,7 @@ class _Observation:
             can leave play before the episode ends: more than one of them).
     """
 
-    own_layout: tuple[str, ...] = ()  # "p" or "v" per 3-vector of the drone's own features
+    own_layout: tuple[str, ...] = ()  # "p" or "v" per 3-vector, "s" per speed of its own features
     other_layout: tuple[str, ...] = ()  # "p" or "v" per 3-vector of each other drone's block
     own_names: tuple[str, ...] = ()  # what each own 3-vector is (same order as own_layout)
     other_names: tuple[str, ...] = ()  # each other drone's, "{d}" standing for that drone
@@ -97,28 +100,35 @@ class _Observation:
         self.opponents, self.mates, self.in_play = int(opponents), int(mates), bool(in_play)
         block = self.other_layout + (("f",) if self.in_play else ())
         layout = self.own_layout + block * (self.opponents + self.mates)
-        per = {"p": [float(position_scale)] * 3, "v": [float(velocity_scale)] * 3, "f": [1.0]}
+        per = {
+            "p": [float(position_scale)] * 3,
+            "v": [float(velocity_scale)] * 3,
+            "s": [float(velocity_scale)],
+            "f": [1.0],
+        }
         self.scale = [x for kind in layout for x in per[kind]]
         self.dim = len(self.scale)
 
     def features(self) -> list[dict[str, str | float]]:
         """What each of the ``dim`` features is: ``name`` (e.g. ``(p_opponent0 - p_own).x``),
         ``unit`` (``m``, ``m/s`` or ``1`` for an in-play flag) and ``scale``, in order."""
-        units = {"p": "m", "v": "m/s"}
-        own = zip(self.own_names, self.own_layout, strict=True)
-        named = [(name, units[kind]) for name, kind in own]
+        kinds = {"p": ("m", 3), "v": ("m/s", 3), "s": ("m/s", 1), "f": ("1", 1)}
+        named = list(zip(self.own_names, self.own_layout, strict=True))
         others = [f"opponent{i}" for i in range(self.opponents)]
         others += [f"mate{j}" for j in range(self.mates)]
         for d in others:
             block = zip(self.other_names, self.other_layout, strict=True)
-            named += [(name.format(d=d), units[kind]) for name, kind in block]
+            named += [(name.format(d=d), kind) for name, kind in block]
             if self.in_play:
-                named.append((f"in_play_{d}", "1"))
+                named.append((f"in_play_{d}", "f"))
         out = []
-        for name, unit in named:
-            axes = ("",) if unit == "1" else (".x", ".y", ".z")
-            vector = f"({name})" if " " in name else name
-            out += [{"name": vector + axis if axis else name, "unit": unit} for axis in axes]
+        for name, kind in named:
+            unit, size = kinds[kind]
+            if size == 1:
+                out.append({"name": name, "unit": unit})
+            else:
+                vector = f"({name})" if " " in name else name
+                out += [{"name": vector + axis, "unit": unit} for axis in (".x", ".y", ".z")]
         return [{**f, "scale": s} for f, s in zip(out, self.scale, strict=True)]
 
     def __call__(self, view: DroneView) -> Tensor:
@@ -136,7 +146,7 @@ class _Observation:
         return torch.cat([block, in_play.unsqueeze(-1).to(block.dtype)], -1)
 
     def _own(self, view: DroneView) -> list[Tensor]:
-        """The drone's own features, each (*B, 3)."""
+        """The drone's own features, each (*B, 3) (a speed (*B, 1))."""
         return []
 
     def _other(self, view: DroneView, position: Tensor, velocity: Tensor) -> Tensor:
@@ -185,6 +195,24 @@ class RelativeStateObservation(_Observation):
         return torch.cat([position - own_p, velocity - own_v], -1)
 
 
+class PursuitStateObservation(RelativeStateObservation):
+    """Eq. 1 and what the drone can do: its own velocity, its own maximum speed per axis and each
+    other drone's relative state.
+
+    s = [v_own, max_speed_own, (p_other - p_own, v_other - v_own) per other drone], (*B, 10)
+    with one opponent. Actions are fractions of the maximum speed, so a policy that knows it
+    knows what its action commands (and how soon it can be anywhere).
+    """
+
+    own_layout = ("v", "s")
+    own_names = ("v_own", "max_speed_own")
+
+    def _own(self, view: DroneView) -> list[Tensor]:
+        if view.own_max_speed is None:
+            raise ValueError("observation pursuit_state: the view has no own_max_speed")
+        return [view.own_velocity, view.own_max_speed.unsqueeze(-1)]
+
+
 class RouteStateObservation(RelativeStateObservation):
     """What a route-flying defender needs: its own velocity, the way to its next setpoint and
     each other drone's relative state.
@@ -204,6 +232,7 @@ OBSERVATIONS = {
     "absolute": AbsoluteObservation,
     "relative_position": RelativePositionObservation,
     "relative_state": RelativeStateObservation,
+    "pursuit_state": PursuitStateObservation,
     "route_state": RouteStateObservation,
 }
 
@@ -215,13 +244,63 @@ class VelocityAction:
     """Paper eq. 2: a velocity command, the policy output in [-1, 1]^3 times the max speed."""
 
     dim = 3
+    guided = False  # the env passes no guidance action
 
-    def __call__(self, action: Tensor, max_speed: Tensor) -> Tensor:
+    def __call__(self, action: Tensor, max_speed: Tensor, guidance: Tensor | None = None) -> Tensor:
         """Map action (*B, 3) in [-1, 1] and max_speed (*B,) m/s to a command (*B, 3) m/s."""
         return action.clamp(-1.0, 1.0) * max_speed.unsqueeze(-1)
 
 
-ACTIONS = {"velocity": VelocityAction}
+class GuidedVelocityAction(VelocityAction):
+    """A learned correction to proportional navigation (a residual policy on guidance).
+
+    The command is ``clamp(g + scale * action, -1, 1) * max_speed`` per axis, with ``g`` the
+    action of proportional navigation towards the attacker's nearest defender in play
+    (:func:`rlplat.envs.kinematics.intercept_action`, computed by the env from the state the
+    policy observed). A zero action flies proportional navigation exactly, so learning starts
+    where the textbook law is; with ``scale >= 2`` every command in the box is reachable from any
+    guidance, and :meth:`inverse` recovers the action that flies a given command. Attackers only.
+
+    Args:
+        gain: 1/s, the guidance's command per metre to its aim point (``env.pursuit_gain``).
+        lead: fraction of the target's predicted motion the guidance leads by.
+        max_lead_time: s, the guidance's longest prediction.
+        scale: the correction's reach, in units of the maximum speed per axis.
+    """
+
+    guided = True
+
+    def __init__(
+        self, *, gain: float = 5.0, lead: float = 0.5, max_lead_time: float = 4.0, scale=2.0
+    ) -> None:
+        for name, v in (("gain", gain), ("scale", scale)):
+            if not v > 0:
+                raise ConfigError(f"action.{name}: must be > 0, got {v}")
+        for name, v in (("lead", lead), ("max_lead_time", max_lead_time)):
+            if not v >= 0:
+                raise ConfigError(f"action.{name}: must be >= 0, got {v}")
+        self.gain, self.lead = float(gain), float(lead)
+        self.max_lead_time, self.scale = float(max_lead_time), float(scale)
+
+    def guidance(self, rel: Tensor, v_other: Tensor, max_speed: Tensor) -> Tensor:
+        """Guidance action (*B, 3) in [-1, 1] for targets at ``rel`` (*B, 3) m moving at
+        ``v_other`` (*B, 3) m/s, pursuers of ``max_speed`` (*B,) m/s."""
+        speed = max_speed.unsqueeze(-1)
+        return intercept_action(rel, v_other, speed, self.gain, self.lead, self.max_lead_time)
+
+    def __call__(self, action: Tensor, max_speed: Tensor, guidance: Tensor | None = None) -> Tensor:
+        if guidance is None:
+            raise ValueError("action: a guided action needs the guidance action")
+        total = (guidance + self.scale * action.clamp(-1.0, 1.0)).clamp(-1.0, 1.0)
+        return total * max_speed.unsqueeze(-1)
+
+    def inverse(self, flown: Tensor, guidance: Tensor) -> Tensor:
+        """The action (*B, 3) that flies the action ``flown`` (*B, 3) of a plain velocity
+        action (command / max speed) under ``guidance``: exact for ``scale >= 2``."""
+        return ((flown - guidance) / self.scale).clamp(-1.0, 1.0)
+
+
+ACTIONS = {"velocity": VelocityAction, "guided_velocity": GuidedVelocityAction}
 
 
 # Rewards ---------------------------------------------------------------------------------

@@ -30,6 +30,37 @@ def pure_pursuit(position: Tensor, target: Tensor, max_speed: Tensor, gain: floa
     return _saturate(gain * (target - position), max_speed)
 
 
+def intercept_action(
+    rel: Tensor,
+    v_other: Tensor,
+    max_speed: Tensor,
+    gain: float,
+    lead: float = 0.5,
+    max_lead_time: float = 4.0,
+) -> Tensor:
+    """Proportional navigation with lead, as an action in [-1, 1] per axis (command / max speed).
+
+    Aims at the predicted intercept point ``rel + lead * v_other * t_go`` and commands
+    ``gain * aim`` saturated at the maximum speed per axis. ``t_go`` is the time the pursuer needs
+    to close the largest per-axis gap at full speed while the target keeps its velocity (speed
+    limits are per axis, so each axis closes on its own), capped at ``max_lead_time``; on an axis
+    where the target is as fast as the pursuer the cap applies. ``lead = 0`` is pure pursuit.
+
+    Args:
+        rel: (*B, 3) m, target minus pursuer position.
+        v_other: (*B, 3) m/s, the target's velocity.
+        max_speed: (*B, 1) m/s per axis, the pursuer's.
+        gain: 1/s, command per metre to the aim point.
+        lead: fraction of the predicted target motion to lead by.
+        max_lead_time: s, longest prediction.
+    """
+    closing = max_speed - torch.sign(rel) * v_other  # per-axis closing speed at full throttle
+    t_axis = torch.where(closing > 1e-6, rel.abs() / closing.clamp_min(1e-6), max_lead_time)
+    t_go = t_axis.amax(-1, keepdim=True).clamp(max=max_lead_time)
+    aim = rel + lead * v_other * t_go
+    return (gain * aim / max_speed).clamp(-1.0, 1.0)
+
+
 def targets(caught: Tensor) -> Tensor:
     """The defenders an attacker may still chase and measure, (N, m) bool: those not caught, or
     all of them once every one is (the episode ends then)."""

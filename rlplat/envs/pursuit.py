@@ -215,6 +215,10 @@ class PursuitEnv(EnvBase):
         # rlplat.agents.policies.NetworkController); only a scripted `nn` defender flies it.
         self.defender_network = defender_network if n_nn and learner == "attacker" else None
         self.routes = scenarios.routes.to(self.device)
+        self._guided = bool(getattr(action, "guided", False))
+        if self._guided and learner != "attacker":
+            raise ConfigError("action: a guided action flies attackers; this run's learner is "
+                              f"the {learner} (valid: velocity)")  # fmt: skip
         self.dynamics = dynamics
         self.obs_fn, self.action_fn, self.reward_fn = observation, action, reward
         # Drones: attackers first, then defenders; the learner's role is its team.
@@ -390,7 +394,8 @@ class PursuitEnv(EnvBase):
         # Command every drone: the other role by its script, the learners by the policy.
         p, v = self.dynamics.position, self.dynamics.velocity
         target, route_done = self._target()
-        own = self.action_fn(action.reshape(n, t, -1), self.max_speed[:, self.team])
+        guidance = self.guidance(p, v) if self._guided else None
+        own = self.action_fn(action.reshape(n, t, -1), self.max_speed[:, self.team], guidance)
         if self.learner == ATTACKER:
             attack, defend = own, self._defender_command(p, v, target, route_done)
         else:
@@ -465,6 +470,15 @@ class PursuitEnv(EnvBase):
         last = self.routes.shape[1] - 1
         return self.routes[self.route, self.waypoint.clamp(max=last)], self.waypoint > last
 
+    def guidance(self, p: Tensor, v: Tensor) -> Tensor:
+        """A guided action's guidance for each attacker (N, k, 3): proportional navigation
+        towards its nearest defender in play, from positions p and velocities v (N, k + m, 3)."""
+        own, defenders = p[:, self.attackers], p[:, self.defenders]
+        near = nearest(own, defenders, targets(self.caught))
+        rel = gather_drones(defenders, near) - own
+        v_other = gather_drones(v[:, self.defenders], near)
+        return self.action_fn.guidance(rel, v_other, self.max_speed[:, self.attackers])
+
     def _relative(self, p: Tensor) -> Tensor:
         """Defender minus attacker position for every pair: (N, k, m, 3)."""
         return p[:, self.defenders].unsqueeze(1) - p[:, self.attackers].unsqueeze(2)
@@ -495,8 +509,10 @@ class PursuitEnv(EnvBase):
                 gather_drones(p[:, self.attackers], near).unsqueeze(-2),
                 gather_drones(v[:, self.attackers], near).unsqueeze(-2),
                 target,
+                own_max_speed=speed,
             )
-            learned = self.action_fn(self.defender_network(view), speed)
+            # A network defender flies eq. 2 (velocity) actions, whatever the learner's action.
+            learned = self.defender_network(view).clamp(-1.0, 1.0) * speed.unsqueeze(-1)
             command = torch.where((self.nn_defender & ~route_done).unsqueeze(-1), learned, command)
         return command
 
@@ -517,7 +533,8 @@ class PursuitEnv(EnvBase):
         other_v = v[:, self.opponents].unsqueeze(1).expand(n, t, -1, 3)
         target, route_done = self._target()
         setpoint = target if self.learner != ATTACKER else target[:, :1].expand(n, t, 3)
-        view = DroneView(own_p, own_v, other_p, other_v, setpoint)
+        view = DroneView(own_p, own_v, other_p, other_v, setpoint,
+                         own_max_speed=self.max_speed[:, self.team])  # fmt: skip
         if t > 1:
             view = replace(view, mate_position=own_p[:, self._mate_index],
                            mate_velocity=own_v[:, self._mate_index])  # fmt: skip

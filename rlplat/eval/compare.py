@@ -122,6 +122,38 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def ceiling_table(summaries: list[dict[str, Any]]) -> str | None:
+    """Capture rates against the capture ceiling (:mod:`rlplat.eval.ceiling`) on the scenarios
+    it covers (route-flying defenders), per speed-ratio bin; None if no summary has it."""
+    if not summaries or "ceiling" not in summaries[0]:
+        return None
+    bins = [b for b, v in summaries[0]["by_speed_ratio"].items() if v["ceiling"]["scenarios"]]
+
+    def cell(stats: dict[str, Any], key: str) -> str:
+        value = stats["ceiling"].get(key)
+        return "–" if value is None else f"{value:.3f}"
+
+    first = summaries[0]
+    lines = [
+        "| attacker / defender max speed | all | " + " | ".join(bins) + " |",
+        "|---|" + "---|" * (len(bins) + 1),
+        f"| scenarios | {first['ceiling']['scenarios']} | "
+        + " | ".join(str(first["by_speed_ratio"][b]["ceiling"]["scenarios"]) for b in bins)
+        + " |",
+        f"| **ceiling** (an intercept exists) | {cell(first, 'interceptable_rate')} | "
+        + " | ".join(cell(first["by_speed_ratio"][b], "interceptable_rate") for b in bins)
+        + " |",
+    ]
+    for s in summaries:
+        name = f"{s['drone']} ({s['name']})" if _learned(s) else s["policy"]
+        lines.append(
+            f"| {name} | {cell(s, 'capture_rate')} | "
+            + " | ".join(cell(s["by_speed_ratio"][b], "capture_rate") for b in bins)
+            + " |"
+        )
+    return "\n".join(lines)
+
+
 def compare(run_dir: str | Path, split: str = "test") -> str:
     """Write ``eval/compare-<split>.{md,csv,png}`` for a run; returns the Markdown table."""
     run_dir = Path(run_dir)
@@ -142,6 +174,15 @@ def compare(run_dir: str | Path, split: str = "test") -> str:
         "each scenario once, deterministically.\n\n"
     )
     figure = f"\n\n![capture rate against speed ratio](compare-{split}.png)\n"
+    ceiling = ceiling_table(summaries)
+    if ceiling is not None:
+        figure += (
+            "\n## Against the capture ceiling\n\n"
+            f"On the {summaries[0]['ceiling']['scenarios']} scenarios whose defender flies its "
+            "route (its path is known in advance): the fraction where an attacker at its maximum "
+            "speed per axis, with the dynamics' acceleration limits, can reach the defender at "
+            "all, and each policy's capture rate there.\n\n" + ceiling + "\n"
+        )
     atomic_write_text(out / f"compare-{split}.md", header + table + figure)
     log.info("comparison of %d policies in %s", len(rows), out / f"compare-{split}.md")
     return table

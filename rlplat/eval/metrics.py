@@ -98,13 +98,17 @@ def outcome_stats(
     min_distance: np.ndarray,
     route_fraction: np.ndarray | None = None,
     evasion: np.ndarray | None = None,
+    interceptable: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Capture rate with its 95 % Wilson interval and the means of a group of episodes.
 
     Times to capture are averaged over the captured episodes only (None if there are none).
     ``route_fraction`` (share of its route the defender flew) and ``evasion`` (the same, 0 for
     a captured or crashed defender) are averaged into ``mean_route_fraction`` and
-    ``evasion_score`` when given.
+    ``evasion_score`` when given. ``interceptable`` (1, 0 or NaN where the bound is not
+    defined, see :mod:`rlplat.eval.ceiling`) adds ``ceiling``: over the scenarios the bound
+    covers, how many there are, the fraction where an intercept exists, the capture rate, and
+    that capture rate as a fraction of the ceiling.
     """
     captured = np.asarray(captured, dtype=bool)
     n, k = int(captured.size), int(captured.sum())
@@ -125,6 +129,22 @@ def outcome_stats(
             for key, v in (("mean_route_fraction", route_fraction), ("evasion_score", evasion))
             if v is not None
         },
+        **({} if interceptable is None else {"ceiling": _ceiling(captured, interceptable)}),
+    }
+
+
+def _ceiling(captured: np.ndarray, interceptable: np.ndarray) -> dict[str, Any]:
+    interceptable = np.asarray(interceptable, dtype=float)
+    covered = ~np.isnan(interceptable)
+    n = int(covered.sum())
+    if not n:
+        return {"scenarios": 0}
+    rate, bound = float(captured[covered].mean()), float(interceptable[covered].mean())
+    return {
+        "scenarios": n,
+        "interceptable_rate": bound,
+        "capture_rate": rate,
+        "fraction_of_ceiling": rate / bound if bound else None,
     }
 
 

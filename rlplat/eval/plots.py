@@ -35,18 +35,28 @@ def save_figure(fig, path: Path) -> None:
     atomic_write_bytes(path, buffer.getvalue())
 
 
-def plot_learning_curve(history: Mapping[str, list[tuple[int, float]]], path: Path) -> None:
-    """Validation capture rate (with the pure-pursuit reference) and mean return, and training
-    return, against frames (PNG)."""
+def plot_learning_curve(
+    history: Mapping[str, list[tuple[int, float]]], path: Path, reference: str = "reference"
+) -> None:
+    """Validation capture rate (with its 95 % interval where logged, and the scripted
+    reference's) and mean return, and training return, against frames (PNG)."""
     plt = pyplot()
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
     for name, axis in (("eval/capture_rate", top), ("eval/mean_return", bottom)):
         if history.get(name):
             x, y = zip(*history[name], strict=True)
             axis.plot(x, y, marker="o", label=f"validation {name.split('/')[1]}")
+    low, high = (
+        history.get("eval/capture_rate_ci95_low"),
+        history.get("eval/capture_rate_ci95_high"),
+    )
+    if low and high and len(low) == len(high):
+        x = [f for f, _ in low]
+        top.fill_between(x, [v for _, v in low], [v for _, v in high], alpha=0.2,
+                         label="95 % interval (validation split)")  # fmt: skip
     if history.get("reference/capture_rate"):
         rate = history["reference/capture_rate"][-1][1]
-        top.axhline(rate, color="grey", linestyle="--", label="pure pursuit (validation)")
+        top.axhline(rate, color="grey", linestyle="--", label=f"{reference} (validation)")
     if history.get("train/episode_return"):
         x, y = zip(*history["train/episode_return"], strict=True)
         bottom.plot(x, y, alpha=0.4, label="training episode return")

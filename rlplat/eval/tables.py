@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import io
+import math
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +34,7 @@ def episode_rows(
     split: str,
     routes: torch.Tensor,
     attackers: int | None = None,
+    interceptable: torch.Tensor | None = None,
 ) -> list[dict[str, Any]]:
     """One row per scenario (in split order): its id and parameters, then its outcome.
 
@@ -42,7 +44,8 @@ def episode_rows(
     ``defender{j}_route_direction``, ``defender{j}_strategy``, ``defender{j}_start_x/y/z`` and
     ``defender{j}_max_speed`` per extra defender j and ``defenders_caught``, after
     ``speed_ratio``. ``attackers``: how many of each scenario's attackers flew
-    (``env.attackers``; None: all).
+    (``env.attackers``; None: all). ``interceptable`` (E,) (see :mod:`rlplat.eval.ceiling`)
+    adds the column ``interceptable``: True, False, or None where the bound is not defined.
     """
     sc = {k: v.tolist() for k, v in scenarios.split(split).items()}
     ids = scenarios.ids[split]
@@ -52,6 +55,8 @@ def episode_rows(
     out = {k: getattr(results, k).tolist() for k in keys}
     terms = {k: v.tolist() for k, v in results.term_sums.items()}
     caught_count = results.defender_caught.sum(-1).tolist()
+    if interceptable is not None:
+        bound = [None if math.isnan(x) else bool(x) for x in interceptable.tolist()]
     rows = []
     for e, i in enumerate(out["scenario_index"]):
         v_a, v_d = sc["attacker_max_speed"][i], sc["defender_max_speed"][i]
@@ -82,6 +87,7 @@ def episode_rows(
             "attacker_max_speed": v_a[0],
             "speed_ratio": v_a[0] / v_d[0],
             **extra,
+            **({} if interceptable is None else {"interceptable": bound[e]}),
             "captured": captured,
             "grounded": out["grounded"][e],
             "time_to_capture_s": out["time_to_capture"][e] if captured else None,
@@ -113,6 +119,8 @@ def summarize(rows: list[dict[str, Any]], terms: list[str], edges: list[float]) 
         "route_fraction": col("route_fraction"),
         "evasion": col("evasion"),
     }
+    if rows and "interceptable" in rows[0]:
+        columns["interceptable"] = col("interceptable")
     routes = sorted({(r["route"], r["route_direction"]) for r in rows})
     strategies = {i: s for i, s in enumerate(STRATEGIES)}
     labels = speed_ratio_labels(edges)

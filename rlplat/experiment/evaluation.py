@@ -27,13 +27,20 @@ from rlplat.agents.checkpoint import actor_from_state, load_checkpoint, saved_in
 from rlplat.agents.export import ARTIFACTS, observation_key
 from rlplat.agents.native import OnnxPolicy, artifact_module, build_library, find_compiler
 from rlplat.agents.policies import POLICIES, make_scripted_policy, policies_for
-from rlplat.envs.pursuit import PursuitEnv
+from rlplat.envs.dynamics import DYNAMICS
+from rlplat.envs.pursuit import ROLES, PursuitEnv
 from rlplat.errors import ConfigError
+from rlplat.eval.ceiling import intercept_ceiling
 from rlplat.eval.compare import compare
 from rlplat.eval.episodes import EpisodeResults, evaluate
 from rlplat.eval.report import write_report
 from rlplat.eval.tables import differing_outcomes, episode_rows, summarize, write_csv
-from rlplat.experiment.factory import build_env, eval_num_envs, resolve_scenarios
+from rlplat.experiment.factory import (
+    build_component,
+    build_env,
+    eval_num_envs,
+    resolve_scenarios,
+)
 from rlplat.experiment.schema import validate_dynamics_swap, validate_evaluate_config
 from rlplat.io import atomic_write_text, sha256_bytes
 from rlplat.scenarios import SPLITS, ScenarioSet
@@ -244,12 +251,17 @@ def evaluate_run(
     source = "summary.json" if "scenario_digest" in run_summary else "checkpoint"
     same_set = check_scenarios(scenarios, expected, strict_scenarios, source)
     n = len(scenarios.split(split))
+    env_cfg = cfg
+    if not learned and cfg.action.get("name") != "velocity":
+        # A baseline flies its own velocity commands (eq. 2), not through a learner's action.
+        env_cfg = OmegaConf.merge(cfg, {"action": None})
+        env_cfg.action = {"name": "velocity"}
     overrides = {} if attackers is None else {"attackers": attackers}
     if cfg.dynamics.name == "airsim":
         overrides["compile_step"] = False  # a step there is calls to the simulator
     env = build_env(
-        cfg, scenarios=scenarios, split=split, num_envs=eval_num_envs(cfg, n), device=device,
-        scenario_order="sequential", **overrides,
+        env_cfg, scenarios=scenarios, split=split, num_envs=eval_num_envs(cfg, n),
+        device=device, scenario_order="sequential", **overrides,
     )  # fmt: skip
     try:
         if state is not None:
@@ -267,7 +279,8 @@ def evaluate_run(
         log.info("%s on %d %s scenarios in %.1f s", name, n, split, wall)
 
         routes = env.routes.cpu()
-        rows = episode_rows(results, scenarios, split, routes, env.num_attackers)
+        bound = split_ceiling(cfg, env_cfg, env, scenarios, split, device)
+        rows = episode_rows(results, scenarios, split, routes, env.num_attackers, bound)
         artifact = {}
         if files is not None:  # the torch actor on the same scenarios: which outcomes differ
             reference = evaluate(env, torch_actor)
@@ -316,6 +329,27 @@ def evaluate_run(
     write_report(out_dir, summary, rows, results, routes, run_dir, trajectories, plots)
     log.info("capture rate %.3f on %s; results in %s", summary["capture_rate"], split, out_dir)
     return Evaluation(rows, summary, results, out_dir)
+
+
+def split_ceiling(cfg, env_cfg, env: PursuitEnv, scenarios, split: str, device):
+    """The capture ceiling of the split (:mod:`rlplat.eval.ceiling`), or None where it is not
+    defined: a defender learner, or dynamics that are not separable per axis."""
+    if ROLES[env.learner] != "attacker" or cfg.dynamics.get("name") != "velocity":
+        return None
+    if env_cfg.action.get("name") != "velocity":
+        env_cfg = OmegaConf.merge(cfg, {"action": None})
+        env_cfg.action = {"name": "velocity"}
+        env = build_env(env_cfg, scenarios=scenarios, split=split, num_envs=env.batch_size[0],
+                        device=device, scenario_order="sequential",
+                        attackers=env.num_attackers)  # fmt: skip
+    dynamics = build_component(
+        DYNAMICS, "dynamics", OmegaConf.to_container(cfg.dynamics, resolve=True),
+        num_envs=env.batch_size[0], num_drones=2, device=device,
+    )  # fmt: skip
+    ceiling = intercept_ceiling(env, dynamics)
+    log.info("capture ceiling on %s: %.3f of %d scenarios with a route-flying defender",
+             split, ceiling.rate, int(ceiling.defined.sum()))  # fmt: skip
+    return ceiling.interceptable
 
 
 def evaluate_from_config(cfg: DictConfig) -> list[str]:

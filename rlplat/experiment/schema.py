@@ -179,6 +179,8 @@ TRAIN_RULES: dict[str, Rule] = {
     "algo.critic_cells": Seq(COUNT),
     "algo.activation": Choice(ACTIVATIONS),
     "algo.action_margin": Num(ge=0, le=1),
+    "algo.actor_zero_mean": flag,
+    "algo.actor_init_std": Num(gt=0, null=True),
     "algo.compile": flag,
     "drone.name": Text(),
     "drone.learner": Choice(ROLES),
@@ -232,11 +234,18 @@ DYNAMICS_KNOBS: dict[str, Rule] = {
 }
 #: Knobs of the observations (conf/observation/).
 OBSERVATION_KNOBS: dict[str, Rule] = {"position_scale": POSITIVE, "velocity_scale": POSITIVE}
+#: Knobs of the actions (conf/action/).
+ACTION_KNOBS: dict[str, Rule] = {
+    "gain": POSITIVE,
+    "lead": NON_NEGATIVE,
+    "max_lead_time": NON_NEGATIVE,
+    "scale": POSITIVE,
+}
 #: Component groups: registry, knob rules, and the arguments the env factory passes itself.
 COMPONENTS: dict[str, tuple[Mapping[str, Any], Mapping[str, Rule], tuple[str, ...]]] = {
     "dynamics": (DYNAMICS, DYNAMICS_KNOBS, ("num_envs", "num_drones", "num_attackers", "device")),
     "observation": (OBSERVATIONS, OBSERVATION_KNOBS, ("opponents", "mates", "in_play")),
-    "action": (ACTIONS, {}, ()),
+    "action": (ACTIONS, ACTION_KNOBS, ()),
 }
 
 #: conf/evaluate.yaml.

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
+from tensordict.nn import NormalParamExtractor
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import RewardSum, TransformedEnv
@@ -33,11 +34,12 @@ from rlplat.agents.checkpoint import (
     set_rng_state,
 )
 from rlplat.agents.policies import REFERENCE, NoisyPolicy, make_scripted_policy
-from rlplat.agents.sac import NetSpec, SACAgent, net_spec
+from rlplat.agents.sac import NetSpec, SACAgent, actor_body, net_spec
 from rlplat.agents.transitions import replay_rows
 from rlplat.envs.pursuit import PursuitEnv
 from rlplat.errors import ConfigError
 from rlplat.eval.episodes import SCORE_NAME, EpisodeResults, evaluate
+from rlplat.eval.metrics import wilson_interval
 from rlplat.eval.plots import plot_learning_curve
 from rlplat.experiment.factory import build_env, resolve_scenarios
 from rlplat.experiment.logger import Metrics, make_logger
@@ -170,6 +172,10 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
         log.info("replay buffer filled with %d frames of noisy %s (%d transitions)",
                  prefilled, algo.init_policy, len(buffer))  # fmt: skip
 
+    # Validate the policy as initialised: best.pt is never worse than where learning started
+    if resume_state is None:
+        validate(run, state, start)
+
     # Training loop
     every = cfg.train.eval_every_frames
     next_eval = (state.frames // every + 1) * every
@@ -221,7 +227,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
 
     # Test the best policy on the test split
     summary = test_best(cfg, run, state, reference, device)
-    plot_learning_curve(run.metrics.history, run_dir / "learning_curve.png")
+    plot_learning_curve(run.metrics.history, run_dir / "learning_curve.png", REFERENCE[run.role])
     run.metrics.close()
     return summary
 
@@ -298,7 +304,7 @@ def seed_everything(seed: int, env: PursuitEnv) -> None:
 
 
 def make_agent(net: NetSpec, env: PursuitEnv, algo: DictConfig, device) -> SACAgent:
-    return SACAgent(
+    agent = SACAgent(
         net,
         env.drone_action_spec,
         gamma=algo.gamma,
@@ -313,6 +319,27 @@ def make_agent(net: NetSpec, env: PursuitEnv, algo: DictConfig, device) -> SACAg
         group=env.group,
         device=device,
     )
+    if algo.actor_zero_mean or algo.actor_init_std is not None:
+        init_actor_output(agent.actor, net.action_dim, algo.actor_zero_mean, algo.actor_init_std)
+    return agent
+
+
+def init_actor_output(actor, action_dim: int, zero_mean: bool, std: float | None) -> None:
+    """Start ``actor`` at a zero mean action (``zero_mean``: tanh of a zero mean) and/or at the
+    pre-tanh spread ``std`` in every state: the output rows of its last layer that give the
+    mean, the spread, or both, get zero weights and the bias that yields that output."""
+    last = [m for m in actor_body(actor).modules() if isinstance(m, torch.nn.Linear)][-1]
+    spread = [m for m in actor_body(actor).modules() if isinstance(m, NormalParamExtractor)][0]
+    mapping = spread.scale_mapping  # biased softplus: std = softplus(x + bias) + min_val
+    with torch.no_grad():
+        if zero_mean:
+            last.weight[:action_dim].zero_()
+            last.bias[:action_dim].zero_()
+        if std is not None:
+            x = torch.tensor(float(std) - mapping.min_val)
+            raw = x + torch.log(-torch.expm1(-x)) - mapping.bias  # inverse softplus, unbiased
+            last.weight[action_dim:].zero_()
+            last.bias[action_dim:].fill_(raw.item())
 
 
 def make_collector(env, policy, algo: DictConfig, init_random_frames: int, device) -> Collector:
@@ -386,6 +413,9 @@ def validate(run: Run, state: RunState, start: float) -> EpisodeResults:
     results = evaluate(run.val_env, run.agent.policy)
     state.evals += 1
     values = {f"eval/{k}": v for k, v in results.summary().items()}
+    captured = int(results.captured.sum())
+    low, high = wilson_interval(captured, results.captured.numel())
+    values["eval/capture_rate_ci95_low"], values["eval/capture_rate_ci95_high"] = low, high
     values["time/eval_s"] = time.perf_counter() - t0
     values["time/elapsed_s"] = time.perf_counter() - start
     run.metrics.log(values, state.frames)

@@ -207,7 +207,7 @@ class AirSimClient:
         self.host, self.port = parse_endpoint(address)
         self.address = f"{self.host}:{self.port}"
         self.connect_timeout_s, self.timeout_s = float(connect_timeout_s), float(timeout_s)
-        self._api = None
+        self._api, self._field = None, "dynamics.timeout_s"
         self._probe()
         try:
             import cosysairsim
@@ -219,10 +219,14 @@ class AirSimClient:
         _ensure_event_loop()
         api = cosysairsim.MultirotorClient.__new__(cosysairsim.MultirotorClient)
         api.client = _session_types()(self.host, self.port)
-        api.client.deadline_s = self.connect_timeout_s
+        api.client.deadline_s, self._field = self.connect_timeout_s, "dynamics.connect_timeout_s"
         self._api = api
-        self.call("ping", "answering ping (connecting)", api.ping)
-        api.client.deadline_s = self.timeout_s
+        try:
+            self.call("ping", "connecting", api.ping)
+        except BaseException:
+            self.close()
+            raise
+        api.client.deadline_s, self._field = self.timeout_s, "dynamics.timeout_s"
         log.info("connected to the simulator at %s", self.address)
 
     def _probe(self) -> None:
@@ -258,7 +262,7 @@ class AirSimClient:
                 wait = self._api.client.deadline_s
                 raise AirSimError(
                     f"simulator at {self.address} stopped answering: no answer to {method} "
-                    f"({what}) within {wait:g} s (dynamics.timeout_s)"
+                    f"({what}) within {wait:g} s ({self._field})"
                 ) from None
             if isinstance(reason, _Lost) or "connection" in str(reason).lower():
                 raise AirSimError(

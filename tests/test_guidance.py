@@ -1,0 +1,126 @@
+"""A learned correction to proportional navigation, the observation with the drone's own speed,
+and the capture ceiling of a split."""
+
+import pytest
+import torch
+
+from rlplat import make_env
+from rlplat.agents.policies import make_scripted_policy
+from rlplat.envs.dynamics import VelocityDynamics
+from rlplat.errors import ConfigError
+from rlplat.eval.ceiling import intercept_ceiling
+from rlplat.eval.episodes import evaluate
+from rlplat.scenarios import STRATEGIES
+
+GUIDED = "action=guided_velocity"
+
+
+def test_a_zero_correction_flies_proportional_navigation(scenarios):
+    n = len(scenarios.split("val"))
+    plain = make_env(scenarios=scenarios, num_envs=n, split="val")
+    guided = make_env(GUIDED, scenarios=scenarios, num_envs=n, split="val")
+    pn = make_scripted_policy("proportional_navigation", plain)
+    a, b = plain.reset(), guided.reset()
+    for _ in range(30):
+        a = plain.step(pn(a))["next"]
+        b = guided.step(b.set("action", torch.zeros(n, 3)))["next"]
+        # The same arithmetic on the same state: bit-identical positions.
+        torch.testing.assert_close(a["positions"], b["positions"], rtol=0, atol=0)
+
+
+def test_the_correction_moves_the_command_by_scale_times_the_action(scenarios):
+    env = make_env(GUIDED, "action.scale=2", scenarios=scenarios, num_envs=4, split="val")
+    td = env.reset()
+    p, v = env.dynamics.position, env.dynamics.velocity
+    guidance = env.guidance(p, v)[:, 0]  # (N, 3)
+    action = torch.tensor([[0.1, -0.2, 0.0]]).expand(4, 3)
+    speed = td["max_speed"][:, 0]
+    command = env.action_fn(action.unsqueeze(1), speed.unsqueeze(1), guidance.unsqueeze(1))[:, 0]
+    expected = (guidance + 2 * action).clamp(-1, 1) * speed.unsqueeze(-1)
+    torch.testing.assert_close(command, expected)
+
+
+def test_a_scripted_policy_flies_its_own_commands_through_a_guided_action(scenarios):
+    n = len(scenarios.split("val"))
+    plain = make_env(scenarios=scenarios, num_envs=n, split="val")
+    guided = make_env(GUIDED, scenarios=scenarios, num_envs=n, split="val")
+    pp_plain = make_scripted_policy("pure_pursuit", plain)
+    pp_guided = make_scripted_policy("pure_pursuit", guided)
+    a, b = plain.reset(), guided.reset()
+    for _ in range(30):
+        a = plain.step(pp_plain(a))["next"]
+        b = guided.step(pp_guided(b))["next"]
+    # The inverse is exact up to float rounding ((x - g) / 2 * 2 + g differs from x by an ulp),
+    # which 30 steps of first-order dynamics do not amplify beyond micrometres.
+    torch.testing.assert_close(a["positions"], b["positions"], rtol=0, atol=1e-4)
+
+
+def test_a_guided_action_refuses_a_defender_learner(scenarios):
+    with pytest.raises(ConfigError, match="guided action flies attackers"):
+        make_env("drone=defender_v1", GUIDED, scenarios=scenarios)
+
+
+@pytest.mark.parametrize("key,value", [("scale", 0), ("lead", -1), ("gain", -2)])
+def test_a_guided_action_refuses_bad_knobs(scenarios, key, value):
+    with pytest.raises(ConfigError, match=f"action.{key}"):
+        make_env(GUIDED, f"action.{key}={value}", scenarios=scenarios)
+
+
+def test_pursuit_state_adds_the_own_maximum_speed(scenarios):
+    env = make_env("observation=pursuit_state", scenarios=scenarios, num_envs=5, split="val")
+    td = env.reset()
+    obs = td["observation"]
+    assert obs.shape == (5, 10)
+    names = [f["name"] for f in env.obs_fn.features()]
+    assert names[3] == "max_speed_own" and env.obs_fn.features()[3]["unit"] == "m/s"
+    torch.testing.assert_close(obs[:, 3], td["max_speed"][:, 0])
+    base = make_env(scenarios=scenarios, num_envs=5, split="val").reset()["observation"]
+    torch.testing.assert_close(obs[:, [0, 1, 2, 4, 5, 6, 7, 8, 9]], base)
+
+
+# The capture ceiling --------------------------------------------------------------------
+
+
+def _ceiling(env, dynamics_cfg=None):
+    n = env.batch_size[0]
+    dynamics = VelocityDynamics(num_envs=n, num_drones=2, device="cpu", **(dynamics_cfg or {}))
+    return intercept_ceiling(env, dynamics)
+
+
+def test_no_policy_captures_where_the_ceiling_says_no_intercept_exists(tmp_path, write_small_set):
+    scenarios = write_small_set(tmp_path, "scenario.n_test=96")
+    n = len(scenarios.split("test"))
+    env = make_env(scenarios=scenarios, num_envs=n, split="test")
+    ceiling = _ceiling(env)
+    setpoints = env.scenarios["defender_strategy"][:, 0] == STRATEGIES.index("setpoints")
+    assert torch.equal(ceiling.defined, setpoints)  # route-flying defenders only
+    assert 0 < ceiling.rate <= 1
+    for name in ("pure_pursuit", "proportional_navigation"):
+        flown = evaluate(env, make_scripted_policy(name, env))
+        impossible = setpoints & (ceiling.interceptable == 0)
+        assert not (flown.captured & impossible).any(), name
+        # where it captured, the bound's earliest intercept is no later than the capture
+        caught = flown.captured & setpoints
+        assert (ceiling.earliest[caught] <= flown.time_to_capture[caught] + 1e-4).all(), name
+
+
+def test_a_slow_attacker_cannot_catch_a_fast_defender_flying_away(tmp_path, write_small_set):
+    # Every defender flies its route at 4.5-5 m/s per axis, every attacker at 1-1.5 m/s and
+    # starts far away: hardly any intercept exists; with the attackers as fast, most do.
+    slow = write_small_set(
+        tmp_path / "slow",
+        "scenario.params.attacker_max_speed.high=1.5",
+        "scenario.params.defender_max_speed.low=4.5",
+        "scenario.strategy_mix={setpoints: 1, nn: 0}",
+    )
+    fast = write_small_set(
+        tmp_path / "fast",
+        "scenario.params.attacker_max_speed.low=4.5",
+        "scenario.params.defender_max_speed.high=1.5",
+        "scenario.strategy_mix={setpoints: 1, nn: 0}",
+    )
+    rates = {}
+    for name, s in (("slow", slow), ("fast", fast)):
+        n = len(s.split("test"))
+        rates[name] = _ceiling(make_env(scenarios=s, num_envs=n, split="test")).rate
+    assert rates["slow"] < 0.5 < rates["fast"] == 1.0
