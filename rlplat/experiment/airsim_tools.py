@@ -140,7 +140,7 @@ def _number(options: Mapping[str, Any], key: str, default: float) -> float:
     return float(value)
 
 
-def _strings(options: Mapping[str, Any], key: str, default: Sequence[Any]) -> list[Any]:
+def _list(options: Mapping[str, Any], key: str, default: Sequence[Any]) -> list[Any]:
     value = options.get(key, default)
     if isinstance(value, (str, bytes)) or not isinstance(value, (list, tuple)):
         raise ConfigError(f"{key}: must be a list, e.g. {key}=[{', '.join(map(str, default))}]")
@@ -202,8 +202,8 @@ def calibrate_command(args: Sequence[str]) -> str:
     default_plan = StepPlan()
     plan = StepPlan(
         max_speed=_number(options, "max_speed", top),
-        amplitudes=tuple(_strings(options, "amplitudes", default_plan.amplitudes)),
-        axes=tuple(_strings(options, "axes", default_plan.axes)),
+        amplitudes=tuple(_list(options, "amplitudes", default_plan.amplitudes)),
+        axes=tuple(_list(options, "axes", default_plan.axes)),
         period=_number(options, "period", cfg.env.control_period),
         settle_s=_number(options, "settle_s", default_plan.settle_s),
         hold_s=_number(options, "hold_s", default_plan.hold_s),
