@@ -6,16 +6,27 @@ Verbs:
     serve [--settings FILE] [--port P] [--clock-speed K] [--realtime] [overrides]
                                     serve the loopback AirSim-protocol test server (for FILE,
                                     else for the configured team) until Ctrl-C
+    calibrate [dynamics.endpoints=[HOST:PORT]] [out=FILE] [options] [overrides]
+                                    fly velocity step responses on the simulator and fit the
+                                    velocity dynamics to them (default out:
+                                    conf/dynamics/velocity_calibrated.yaml)
+    replay recording=FILE [out=CSV] [dynamics overrides]
+                                    replay a recorded episode's commands through the embedded
+                                    dynamics; per-step position error
+    sim2sim run_dir=DIR dynamics.endpoints=[HOST:PORT,...] [split=test] [reference=NAME]
+                                    the run's policy on its embedded dynamics and on the
+                                    simulator, compared per scenario
 """
 
 from __future__ import annotations
 
+import logging
 import sys
 from collections.abc import Sequence
 
 from rlplat.cli import exit_on_error
 
-VERBS = ("settings", "serve")
+VERBS = ("settings", "serve", "calibrate", "replay", "sim2sim")
 
 
 @exit_on_error
@@ -31,10 +42,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     from rlplat.experiment import airsim_tools
 
     verb, rest = args[0], args[1:]
+    if verb == "serve":
+        return airsim_tools.serve_command(rest)
     if verb == "settings":
         print(airsim_tools.settings_command(rest))
         return 0
-    return airsim_tools.serve_command(rest)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    print(getattr(airsim_tools, f"{verb}_command")(rest))
+    return 0
 
 
 if __name__ == "__main__":
