@@ -347,6 +347,7 @@ SAC_PAPER_KEPT = {
     "activation": "relu",
     "actor_zero_mean": False,
     "actor_init_std": None,
+    "actor_warmup_updates": 0,
 }
 
 

@@ -125,3 +125,40 @@ def test_a_slow_attacker_cannot_catch_a_fast_defender_flying_away(tmp_path, writ
         n = len(s.split("test"))
         rates[name] = _ceiling(make_env(PLAIN, scenarios=s, num_envs=n, split="test")).rate
     assert rates["slow"] < 0.5 < rates["fast"] == 1.0
+
+
+# Where learning starts --------------------------------------------------------------------
+
+
+def test_a_held_actor_keeps_its_policy_while_the_critics_learn(scenarios):
+    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+    from rlplat.agents.sac import net_spec
+    from rlplat.agents.transitions import TRANSITION_KEYS
+    from rlplat.experiment.config import compose_config
+    from rlplat.experiment.training import held_actor, make_agent
+
+    cfg = compose_config("train", ["algo.compile=false", "algo.batch_size=32"])
+    env = make_env(scenarios=scenarios, num_envs=8)
+    agent = make_agent(net_spec(env.obs_fn.scale, 3, cfg.algo), env, cfg.algo, "cpu")
+    loc_rows = agent.actor.module[0].module[0].body[-1].weight[:3]
+    assert loc_rows.abs().max() == 0  # actor_zero_mean: a zero correction, proportional nav.
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(256), batch_size=32)
+    td = env.reset()
+    while len(buffer) < 256:
+        td, nxt = env.step_and_maybe_reset(td.set("action", env.action_spec.rand()))
+        buffer.extend(td.select(*TRANSITION_KEYS).clone())
+        td = nxt
+    actor = [p.detach().clone() for p in agent.loss.actor_network_params.values(True, True)]
+    critic = [p.detach().clone() for p in agent.loss.qvalue_network_params.values(True, True)]
+    for _ in range(3):
+        with held_actor(agent, True):
+            agent.update(buffer.sample())
+    after = list(agent.loss.actor_network_params.values(True, True))
+    assert all(torch.equal(a, b) for a, b in zip(actor, after, strict=True))
+    moved = list(agent.loss.qvalue_network_params.values(True, True))
+    assert not all(torch.equal(a, b) for a, b in zip(critic, moved, strict=True))
+    with held_actor(agent, False):  # released: the actor learns
+        agent.update(buffer.sample())
+    released = list(agent.loss.actor_network_params.values(True, True))
+    assert not all(torch.equal(a, b) for a, b in zip(actor, released, strict=True))

@@ -181,6 +181,7 @@ TRAIN_RULES: dict[str, Rule] = {
     "algo.action_margin": Num(ge=0, le=1),
     "algo.actor_zero_mean": flag,
     "algo.actor_init_std": Num(gt=0, null=True),
+    "algo.actor_warmup_updates": Num(integer=True, ge=0),
     "algo.compile": flag,
     "drone.name": Text(),
     "drone.learner": Choice(ROLES),

@@ -8,6 +8,7 @@ of a :class:`Run` (what a run is made of) and its :class:`RunState` (what it has
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import random
@@ -194,7 +195,8 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
                 update_credit += batch.numel() * algo.utd_ratio
                 losses = []
                 while update_credit >= 1.0:
-                    losses.append(agent.update(buffer.sample()))
+                    with held_actor(agent, state.updates < algo.actor_warmup_updates):
+                        losses.append(agent.update(buffer.sample()))
                     update_credit -= 1.0
                     state.updates += 1
                 if losses:
@@ -340,6 +342,32 @@ def init_actor_output(actor, action_dim: int, zero_mean: bool, std: float | None
             raw = x + torch.log(-torch.expm1(-x)) - mapping.bias  # inverse softplus, unbiased
             last.weight[action_dim:].zero_()
             last.bias[action_dim:].fill_(raw.item())
+
+
+@contextlib.contextmanager
+def held_actor(agent: SACAgent, hold: bool):
+    """With ``hold``, the update leaves the actor as it was: its parameters and its optimiser's
+    state are put back in place afterwards (the critics and the entropy coefficient learn).
+    The first updates of a run train a critic that has not seen a return yet; an actor that
+    follows its gradient then leaves the policy it started from (``algo.actor_warmup_updates``)."""
+    if not hold:
+        yield
+        return
+    optimizer = agent.optimizers["actor"]
+    params = [p for group in optimizer.param_groups for p in group["params"]]
+    saved = [p.detach().clone() for p in params]
+    moments = [{k: v.clone() for k, v in optimizer.state[p].items()} for p in params]
+    try:
+        yield
+    finally:
+        with torch.no_grad():
+            for p, before, state in zip(params, saved, moments, strict=True):
+                p.copy_(before)
+                for k, v in optimizer.state.get(p, {}).items():
+                    if k in state:
+                        v.copy_(state[k])
+                    elif torch.is_tensor(v):
+                        v.zero_()
 
 
 def make_collector(env, policy, algo: DictConfig, init_random_frames: int, device) -> Collector:
