@@ -113,6 +113,17 @@ def pytest_configure(config):
     os.environ["OMP_NUM_THREADS"] = str(threads)
 
 
+@pytest.fixture(autouse=True)
+def _torch_threads_restored():
+    """A test that trains in-process with ``train.threads`` sets torch's thread count for the
+    whole process; put it back, so that later tests (and their subprocesses) run as the suite
+    was started."""
+    threads = torch.get_num_threads()
+    yield
+    if torch.get_num_threads() != threads:
+        torch.set_num_threads(threads)
+
+
 def pytest_report_header(config):
     return (
         f"torch {torch.__version__}: {torch.get_num_threads()} CPU threads, "

@@ -115,7 +115,10 @@ def test_setpoint_follower_flies_the_defender_like_the_scripted_one(write_small_
     setpoint_only = write_small_set(tmp_path, "scenario.strategy_mix.nn=0")
 
     def fly(learner, policy):
-        cfg = compose_config("train", [f"drone.learner={learner}", "env.time_limit=20"])
+        # eq. 1 and 2 for either learner (attacker_v4's guided action flies attackers only)
+        cfg = compose_config(
+            "train", ["drone=attacker_v3", f"drone.learner={learner}", "env.time_limit=20"]
+        )
         env = build_env(cfg, scenarios=setpoint_only, split="test", num_envs=16)
         return evaluate(env, make_scripted_policy(policy, env))
 
@@ -201,7 +204,7 @@ def test_cli_train_evaluate_compare_round_trip(trained_run, scenarios, run_pytho
     res = run_python("-m", "rlplat.eval.compare", str(run))
     assert res.returncode == 0, res.stderr[-2000:]
     assert [line.split(" | ")[0] for line in res.stdout.splitlines()[2:]] == [
-        "| attacker_v3 (best)",
+        "| attacker_v4 (best)",
         "| pure_pursuit",
         "| proportional_navigation",
     ]
@@ -281,12 +284,12 @@ def test_checkpoint_that_does_not_fit_the_drone_config(trained_run, tmp_path):
     run = tmp_path / "run"
     shutil.copytree(trained_run, run, ignore=shutil.ignore_patterns("eval"))
     cfg = OmegaConf.load(run / "config.yaml")
-    cfg.observation.name = "absolute"  # R^12, the checkpoint was trained on R^9
+    cfg.observation.name = "absolute"  # R^12, the checkpoint was trained on R^10
     OmegaConf.save(cfg, run / "config.yaml")
     with pytest.raises(
         ConfigError,
-        match=r"ckpt: .*best.pt has obs_dim=9, the run's drone config \(observation=absolute, "
-        r"action=velocity\) gives obs_dim=12",
+        match=r"ckpt: .*best.pt has obs_dim=10, the run's drone config \(observation=absolute, "
+        r"action=guided_velocity\) gives obs_dim=12",
     ):
         evaluate_run(run)
     assert not (run / "eval").exists()

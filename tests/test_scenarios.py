@@ -186,7 +186,7 @@ def test_load_returns_tensors_matching_files(make_spec, tmp_path):
         (("scenario.min_distance=60",), r"scenario.min_distance: 60.0 m cannot be met"),
         (
             COARSE,
-            r"scenario: 1700 scenarios requested \(n_train \+ n_val \+ n_test\) but only 512 "
+            r"scenario: 3500 scenarios requested \(n_train \+ n_val \+ n_test\) but only 512 "
             r"distinct combinations exist at the configured resolution",
         ),
         (("+scenario.strategy_mix.mixed=1",), r"unknown strategy 'mixed'; valid: setpoints, nn"),

@@ -86,7 +86,7 @@ def test_same_seed_same_rollout(team_sets, k, m):
 
 
 def test_the_observation_holds_team_mates_relative_state(team_sets):
-    env = make_env(scenarios=team_sets[2, 1], num_envs=2)
+    env = make_env("drone=attacker_v3", scenarios=team_sets[2, 1], num_envs=2)  # eq. 1 blocks
     td = env.reset()
     p = td["positions"]
     obs = td["attacker", "observation"]  # [v_own, p_d - p_a, v_d - v_a, p_mate - p_a, v_mate - ...]
@@ -97,7 +97,7 @@ def test_the_observation_holds_team_mates_relative_state(team_sets):
 
 
 def test_a_caught_defender_leaves_play_and_the_last_capture_ends_the_episode(team_sets):
-    env = make_env(scenarios=team_sets[2, 2], split="val", num_envs=16)
+    env = make_env("drone=attacker_v3", scenarios=team_sets[2, 2], split="val", num_envs=16)
     env.set_seed(0)
     rollout = env.rollout(600, make_scripted_policy("pure_pursuit", env), break_when_any_done=False)
     caught, done = rollout["next", "caught"], rollout["next", "done"].squeeze(-1)
@@ -214,6 +214,7 @@ def test_a_learned_two_vs_one_policy_beats_a_random_one(easy_pursuit, tmp_path, 
     cfg = compose_config(
         "train",
         [
+            "drone=attacker_v3",  # from a random actor (attacker_v4 starts at the law)
             f"scenarios_dir={tmp_path}",
             "env.time_limit=20",
             "train.max_minutes=null",  # frames only: the same budget on a slower machine

@@ -346,28 +346,22 @@ def init_actor_output(actor, action_dim: int, zero_mean: bool, std: float | None
 
 @contextlib.contextmanager
 def held_actor(agent: SACAgent, hold: bool):
-    """With ``hold``, the update leaves the actor as it was: its parameters and its optimiser's
-    state are put back in place afterwards (the critics and the entropy coefficient learn).
-    The first updates of a run train a critic that has not seen a return yet; an actor that
-    follows its gradient then leaves the policy it started from (``algo.actor_warmup_updates``)."""
+    """With ``hold``, the update leaves the actor's parameters as they were (they are put back
+    in place afterwards) while the critics and the entropy coefficient learn. The first updates
+    of a run train a critic that has not seen a return yet; an actor that follows its gradient
+    then leaves the policy it started from (``algo.actor_warmup_updates``). The actor's Adam
+    moments and step count run on, so that a compiled update sees every tensor as before."""
     if not hold:
         yield
         return
-    optimizer = agent.optimizers["actor"]
-    params = [p for group in optimizer.param_groups for p in group["params"]]
+    params = [p for group in agent.optimizers["actor"].param_groups for p in group["params"]]
     saved = [p.detach().clone() for p in params]
-    moments = [{k: v.clone() for k, v in optimizer.state[p].items()} for p in params]
     try:
         yield
     finally:
         with torch.no_grad():
-            for p, before, state in zip(params, saved, moments, strict=True):
+            for p, before in zip(params, saved, strict=True):
                 p.copy_(before)
-                for k, v in optimizer.state.get(p, {}).items():
-                    if k in state:
-                        v.copy_(state[k])
-                    elif torch.is_tensor(v):
-                        v.zero_()
 
 
 def make_collector(env, policy, algo: DictConfig, init_random_frames: int, device) -> Collector:
