@@ -182,7 +182,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
                 update_credit += batch.numel() * algo.utd_ratio
                 losses = []
                 while update_credit >= 1.0:
-                    losses.append(agent.update(buffer.sample()))
+                    losses.append(agent.update_from(buffer))
                     update_credit -= 1.0
                     state.updates += 1
                 if losses:
