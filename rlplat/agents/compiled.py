@@ -1,18 +1,19 @@
-"""The compiled SAC update: TorchRL's ``SACLoss`` over plain tensors, then Adam and the soft
-target update in one compiled step.
+"""The compiled SAC update: TorchRL's ``SACLoss``, its gradients, Adam and the soft target
+update in one compiled graph.
 
 A gradient update of small networks costs little arithmetic; what ``torch.compile`` must remove
-is everything around it. :class:`CompiledUpdate` makes two compiled calls per update, each a
-single graph:
+is everything around it. :class:`CompiledUpdate` makes one compiled call per update, a single
+graph (``fullgraph=True``) that
 
-- ``losses(columns, index)``: gathers the batch rows from the replay storage's own tensors,
-  builds the batch ``TensorDict`` inside the graph and runs ``SACLoss`` on it; its backward
-  is compiled with it (one autograd node).
-- ``step(...)``: ``torch.optim.adam.adam`` (the function ``Adam.step`` calls) for each
-  optimiser's parameters, then the soft target update (``lerp``), under ``no_grad``.
+- gathers the batch rows from the replay storage's own tensors and builds the batch
+  ``TensorDict`` inside the graph,
+- runs ``SACLoss`` on it and takes the gradients of the summed losses with
+  ``torch.autograd.grad`` (traced into the graph: ``torch._dynamo.config.trace_autograd_ops``),
+- applies ``torch.optim.adam.adam`` (the function ``Adam.step`` calls) for each optimiser's
+  parameters and then the soft target update (``lerp``).
 
-Between them, ``backward()`` runs the compiled backward. The optimisers stay
-``torch.optim.Adam`` objects (their state dicts, hence checkpoints, are unchanged); the step
+No autograd graph, ``.grad`` or optimiser call is left in Python. The optimisers stay
+``torch.optim.Adam`` objects (their state dicts, hence checkpoints, are unchanged); the graph
 reads their state tensors, collected once by :meth:`CompiledUpdate.bind`.
 """
 
@@ -22,69 +23,14 @@ from collections.abc import Callable, Mapping, Sequence
 
 import torch
 from tensordict import TensorDict
-from torch._inductor.custom_graph_pass import CustomGraphPass, get_hash_for_files
 from torch.optim.adam import adam
 
 LOSS_NAMES = ("loss_actor", "loss_qvalue", "loss_alpha", "alpha", "entropy")
 
-_aten = torch.ops.aten
-
-#: Inductor options of both compiled calls. Dynamo's guards already pin every input's shape and
+#: Inductor options of the compiled update. Dynamo's guards already pin every input's shape and
 #: stride while they are evaluated (the warm-up), so the generated code's own checks of each
 #: input on every call are dropped.
 OPTIONS = {"size_asserts": False, "alignment_asserts": False}
-
-
-class ReluGradAsProduct(CustomGraphPass):
-    """Inductor joint-graph pass: ReLU's backward as ``grad * sign(relu(x))``.
-
-    Autograd writes it ``where(relu(x) <= 0, 0, grad)``, and where only that mask is needed
-    later (a critic evaluated with detached parameters, as in the actor loss), the partitioner
-    saves the boolean mask for the backward. Inductor's CPU code stores a vector of booleans
-    through a scalar loop, which made those kernels about ten times slower than the rest of the
-    update. ``sign(relu(x))`` is 1 where ``relu(x) > 0`` and 0 elsewhere, so the gradient is
-    the same (up to the sign of a zero); the graph keeps float tensors only.
-    """
-
-    def __call__(self, graph: torch.fx.Graph) -> None:
-        for le in list(graph.nodes):
-            if le.op != "call_function" or le.target is not _aten.le.Scalar or le.args[1] != 0:
-                continue
-            relu = le.args[0]
-            while getattr(relu, "target", None) in (_aten.alias.default, _aten.view.default):
-                relu = relu.args[0]
-            if getattr(relu, "target", None) is not _aten.relu.default:
-                continue
-            users = list(le.users)
-            if not users or not all(_is_select_zero(u, le) for u in users):
-                continue
-            for where in users:
-                with graph.inserting_before(where):
-                    sign = graph.call_function(_aten.sign.default, (le.args[0],))
-                    product = graph.call_function(_aten.mul.Tensor, (where.args[2], sign))
-                sign.meta = dict(le.args[0].meta)
-                product.meta = dict(where.meta)
-                where.replace_all_uses_with(product)
-                graph.erase_node(where)
-            graph.erase_node(le)
-
-    def uuid(self) -> bytes:
-        return get_hash_for_files((__file__,))
-
-
-def _is_select_zero(node: torch.fx.Node, mask: torch.fx.Node) -> bool:
-    """Whether ``node`` is ``where(mask, 0, x)``."""
-    if node.target is not _aten.where.self or node.args[0] is not mask:
-        return False
-    zero = node.args[1]
-    if isinstance(zero, int | float):
-        return zero == 0
-    target = getattr(zero, "target", None)
-    if target is _aten.full.default:
-        return zero.args[1] == 0
-    if target is _aten.scalar_tensor.default:
-        return zero.args[0] == 0
-    return False
 
 
 def init_adam_state(opt: torch.optim.Adam) -> None:
@@ -108,7 +54,7 @@ def _scalar_dtype() -> torch.dtype:
 
 
 class CompiledUpdate:
-    """One SAC gradient update as two compiled calls; see the module docstring.
+    """One SAC gradient update as one compiled call; see the module docstring.
 
     Args:
         loss: the ``SACLoss``.
@@ -131,10 +77,7 @@ class CompiledUpdate:
         self.loss, self.optimizers, self.tau = loss, dict(optimizers), tau
         self._soft_pairs = list(soft_pairs)
         self.keys: tuple = ()
-        self._losses = torch.compile(
-            self._losses_eager, options={**OPTIONS, "joint_custom_pre_pass": ReluGradAsProduct()}
-        )
-        self._step = torch.compile(self._step_eager, options=OPTIONS)
+        self._update = torch.compile(self._update_eager, fullgraph=True, options=OPTIONS)
         self.bind()
 
     def bind(self) -> None:
@@ -165,6 +108,15 @@ class CompiledUpdate:
         pairs = self._soft_pairs
         self._soft_trained = [(t, position[id(s)]) for t, s in pairs if id(s) in position]
         self._soft_other = [(t, s) for t, s in pairs if id(s) not in position]
+        self._state = (
+            self._params,
+            self._exp_avgs,
+            self._exp_avg_sqs,
+            self._steps,
+            [t for t, _ in self._soft_trained],
+            [t for t, _ in self._soft_other],
+            [s for _, s in self._soft_other],
+        )
         self._calls = 0
 
     def __call__(
@@ -174,30 +126,24 @@ class CompiledUpdate:
         order; all rows when ``index`` is None); returns the detached losses."""
         if keys != self.keys:  # another batch layout: compile for it, with guards
             self.keys, self._calls = keys, 0
+        args = (tuple(columns), index, *self._state)
         if self._calls < self.WARMUP_CALLS:
             self._calls += 1
-            return self._run(tuple(columns), index)
-        # Guard evaluation costs as much as a small kernel; skipping it is sound while every
-        # call looks like the warm-up ones (same keys, shapes, dtypes, optimiser state).
-        with torch.compiler.set_stance("default", skip_guard_eval_unsafe=True):
-            return self._run(tuple(columns), index)
-
-    def _run(self, columns, index) -> dict[str, torch.Tensor]:
-        total, values = self._losses(columns, index)
-        for p in self._params:
-            p.grad = None
-        total.backward()
-        self._step(
-            self._params,
-            [p.grad for p in self._params],
-            self._exp_avgs,
-            self._exp_avg_sqs,
-            self._steps,
-            [t for t, _ in self._soft_trained],
-            [t for t, _ in self._soft_other],
-            [s for _, s in self._soft_other],
-        )
+            with torch._dynamo.config.patch(trace_autograd_ops=True):
+                values = self._update(*args)
+        else:
+            # Guard evaluation costs as much as a small kernel; skipping it is sound while
+            # every call looks like the warm-up ones (same keys, shapes, dtypes, optimiser
+            # state tensors).
+            with torch.compiler.set_stance("default", skip_guard_eval_unsafe=True):
+                values = self._update(*args)
         return dict(zip(LOSS_NAMES, values, strict=True))
+
+    def _update_eager(self, columns, index, params, exp_avgs, exp_avg_sqs, steps, *soft):
+        total, values = self._losses_eager(columns, index)
+        grads = torch.autograd.grad(total, params)
+        self._step_eager(params, list(grads), exp_avgs, exp_avg_sqs, steps, *soft)
+        return values
 
     def _losses_eager(self, columns, index):
         batch = TensorDict(batch_size=columns[0].shape[:1] if index is None else index.shape)

@@ -185,8 +185,8 @@ class SACAgent:
         target_entropy: ``"auto"`` (minus the action dimension) or a number.
         loss_function: critic regression loss, ``l2`` or ``smooth_l1``.
         compile: run the update compiled (:class:`rlplat.agents.compiled.CompiledUpdate`: the
-            same losses, Adam steps and soft update as the eager update, in two compiled
-            calls).
+            same losses, Adam steps and soft update as the eager update, in one compiled
+            graph).
         group: the env's group key of a team of learners (None for a lone learner). The loss
             trains on one drone's transitions at a time (flat keys, see
             :func:`rlplat.agents.transitions.agent_rows`); ``policy`` flies the whole team with
@@ -243,12 +243,16 @@ class SACAgent:
             "alpha": torch.optim.Adam([self.loss.log_alpha], alpha_lr),
         }
         self._compiled = (
-            CompiledUpdate(self.loss, self.optimizers, self.target_updater.pairs, tau)
+            CompiledUpdate(
+                self.loss,
+                self.optimizers,
+                self.target_updater.pairs,
+                1.0 - self.target_updater.eps,  # FusedSoftUpdate's weight, to the last bit
+            )
             if compile
             else None
         )
-        self._present: set = set()
-        self._keys: tuple = ()
+        self._columns: tuple | None = None  # the storage update_from read last, and how
 
     #: Compiled updates run with guard checks for this many calls, then without.
     WARMUP_CALLS = CompiledUpdate.WARMUP_CALLS
@@ -259,35 +263,36 @@ class SACAgent:
             out = self._update_eager(batch)
             self.target_updater.step()
             return out
-        keys = self._batch_keys(batch.keys(True, True))
+        keys = self._batch_keys(batch)
         return self._compiled(keys, [batch.get(k) for k in keys], None)
 
     def update_from(self, buffer: ReplayBuffer) -> dict[str, torch.Tensor]:
         """:meth:`update` on a batch drawn from ``buffer`` as ``buffer.sample()`` draws it.
 
         Compiled, the rows are drawn by the buffer's own sampler and gathered from its storage
-        inside the compiled loss, so that no batch ``TensorDict`` is built in Python.
+        inside the compiled update, so that no batch ``TensorDict`` is built in Python.
         """
+        if self._compiled is None:
+            return self.update(buffer.sample())
         storage = buffer.storage
         rows = getattr(storage, "_storage", None)  # a TensorStorage's preallocated tensors
-        if (
-            self._compiled is None
-            or not isinstance(storage, TensorStorage)
-            or not isinstance(rows, TensorDictBase)
-            or type(buffer.sampler) is not RandomSampler
-        ):
-            return self.update(buffer.sample())
-        index, _ = buffer.sampler.sample(storage, buffer.batch_size)
-        keys = self._batch_keys(rows.keys(True, True))
-        return self._compiled(keys, [rows.get(k) for k in keys], index)
+        if self._columns is None or self._columns[0] is not rows:
+            sampler = buffer.sampler
+            if not (
+                isinstance(storage, TensorStorage)
+                and isinstance(rows, TensorDictBase)
+                and type(sampler) is RandomSampler
+            ):
+                return self.update(buffer.sample())
+            keys = self._batch_keys(rows)
+            self._columns = (rows, sampler, buffer.batch_size, keys, [rows.get(k) for k in keys])
+        _, sampler, batch_size, keys, columns = self._columns
+        index, _ = sampler.sample(storage, batch_size)
+        return self._compiled(keys, columns, index)
 
-    def _batch_keys(self, present) -> tuple:
-        """The batch entries the loss reads (:func:`compiled_update_keys`)."""
-        present = set(present)
-        if present != self._present:
-            self._present = present
-            self._keys = compiled_update_keys(self.loss, present.__contains__)
-        return self._keys
+    def _batch_keys(self, batch: TensorDictBase) -> tuple:
+        """The entries of ``batch`` the loss reads (:func:`compiled_update_keys`)."""
+        return compiled_update_keys(self.loss, lambda key: key in batch.keys(True, True))
 
     def _update_eager(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         losses = self.loss(batch)
