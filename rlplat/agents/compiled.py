@@ -8,7 +8,8 @@ graph (``fullgraph=True``) that
 - gathers the batch rows from the replay storage's own tensors and builds the batch
   ``TensorDict`` inside the graph,
 - runs ``SACLoss`` on it and takes the gradients of the summed losses with
-  ``torch.autograd.grad`` (traced into the graph: ``torch._dynamo.config.trace_autograd_ops``),
+  ``torch.autograd.grad`` (traced into the graph: ``torch._dynamo.config.trace_autograd_ops``;
+  a torch without that option breaks the graph there, into a loss graph and a step graph),
 - applies ``torch.optim.adam.adam`` (the function ``Adam.step`` calls) for each optimiser's
   parameters and then the soft target update (``lerp``).
 
@@ -19,10 +20,12 @@ reads their state tensors, collected once by :meth:`CompiledUpdate.bind`.
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable, Mapping, Sequence
 
 import torch
 from tensordict import TensorDict
+from torch._inductor.custom_graph_pass import CustomGraphPass, get_hash_for_files
 from torch.optim.adam import adam
 
 LOSS_NAMES = ("loss_actor", "loss_qvalue", "loss_alpha", "alpha", "entropy")
@@ -31,6 +34,65 @@ LOSS_NAMES = ("loss_actor", "loss_qvalue", "loss_alpha", "alpha", "entropy")
 #: stride while they are evaluated (the warm-up), so the generated code's own checks of each
 #: input on every call are dropped.
 OPTIONS = {"size_asserts": False, "alignment_asserts": False}
+
+#: Whether Dynamo can trace ``torch.autograd.grad`` (an option of recent torch versions).
+TRACE_GRAD = hasattr(torch._dynamo.config, "trace_autograd_ops")
+
+_aten = torch.ops.aten
+
+
+class ReluGradAsProduct(CustomGraphPass):
+    """Inductor joint-graph pass: ReLU's backward as ``grad * sign(relu(x))``.
+
+    For a torch that cannot trace ``autograd.grad`` (the update is then a forward graph with its
+    backward, and a step graph). Autograd writes ReLU's backward ``where(relu(x) <= 0, 0,
+    grad)``, and where only that mask is needed later (a critic evaluated with detached
+    parameters, as in the actor loss), the partitioner saves the boolean mask for the backward.
+    Inductor's CPU code stores a vector of booleans through a scalar loop, which made those
+    kernels about ten times slower than the rest of the update. ``sign(relu(x))`` is 1 where
+    ``relu(x) > 0`` and 0 elsewhere, so the gradient is the same (up to the sign of a zero); the
+    graph keeps float tensors only. Within one graph no mask is saved, and the pass is not used.
+    """
+
+    def __call__(self, graph: torch.fx.Graph) -> None:
+        for le in list(graph.nodes):
+            if le.op != "call_function" or le.target is not _aten.le.Scalar or le.args[1] != 0:
+                continue
+            relu = le.args[0]
+            while getattr(relu, "target", None) in (_aten.alias.default, _aten.view.default):
+                relu = relu.args[0]
+            if getattr(relu, "target", None) is not _aten.relu.default:
+                continue
+            users = list(le.users)
+            if not users or not all(_is_select_zero(u, le) for u in users):
+                continue
+            for where in users:
+                with graph.inserting_before(where):
+                    sign = graph.call_function(_aten.sign.default, (le.args[0],))
+                    product = graph.call_function(_aten.mul.Tensor, (where.args[2], sign))
+                sign.meta = dict(le.args[0].meta)
+                product.meta = dict(where.meta)
+                where.replace_all_uses_with(product)
+                graph.erase_node(where)
+            graph.erase_node(le)
+
+    def uuid(self) -> bytes:
+        return get_hash_for_files((__file__,))
+
+
+def _is_select_zero(node: torch.fx.Node, mask: torch.fx.Node) -> bool:
+    """Whether ``node`` is ``where(mask, 0, x)``."""
+    if node.target is not _aten.where.self or node.args[0] is not mask:
+        return False
+    zero = node.args[1]
+    if isinstance(zero, int | float):
+        return zero == 0
+    target = getattr(zero, "target", None)
+    if target is _aten.full.default:
+        return zero.args[1] == 0
+    if target is _aten.scalar_tensor.default:
+        return zero.args[0] == 0
+    return False
 
 
 def init_adam_state(opt: torch.optim.Adam) -> None:
@@ -77,7 +139,10 @@ class CompiledUpdate:
         self.loss, self.optimizers, self.tau = loss, dict(optimizers), tau
         self._soft_pairs = list(soft_pairs)
         self.keys: tuple = ()
-        self._update = torch.compile(self._update_eager, fullgraph=True, options=OPTIONS)
+        options = dict(OPTIONS)
+        if not TRACE_GRAD:
+            options["joint_custom_pre_pass"] = ReluGradAsProduct()
+        self._update = torch.compile(self._update_eager, fullgraph=TRACE_GRAD, options=options)
         self.bind()
 
     def bind(self) -> None:
@@ -129,7 +194,7 @@ class CompiledUpdate:
         args = (tuple(columns), index, *self._state)
         if self._calls < self.WARMUP_CALLS:
             self._calls += 1
-            with torch._dynamo.config.patch(trace_autograd_ops=True):
+            with _tracing_grad():
                 values = self._update(*args)
         else:
             # Guard evaluation costs as much as a small kernel; skipping it is sound while
@@ -172,6 +237,13 @@ class CompiledUpdate:
             start = end
         trained = [params[i] for _, i in self._soft_trained]
         torch._foreach_lerp_([*targets, *other], [*trained, *sources], self.tau)
+
+
+def _tracing_grad() -> contextlib.AbstractContextManager:
+    """Dynamo traces ``torch.autograd.grad`` while this is open (where torch can)."""
+    if TRACE_GRAD:
+        return torch._dynamo.config.patch(trace_autograd_ops=True)
+    return contextlib.nullcontext()
 
 
 def compiled_update_keys(loss: torch.nn.Module, has: Callable[[object], bool]) -> tuple:
