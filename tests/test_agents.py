@@ -84,10 +84,15 @@ def test_pure_pursuit_reference_captures_and_a_hover_does_not(scenarios):
 
 
 @pytest.mark.slow
-def test_compiled_update_matches_eager(scenarios):
+def test_compiled_update_matches_eager(scenarios, monkeypatch):
     import torch._inductor.config
 
+    from rlplat.agents import compiled as compiled_update
     from rlplat.agents.sac import SACAgent, net_spec
+
+    # As a torch that cannot trace autograd.grad compiles it: a loss graph (with the ReLU
+    # backward pass), autograd.grad, a step graph. The single graph is the next test's.
+    monkeypatch.setattr(compiled_update, "TRACE_GRAD", False)
     from rlplat.experiment.config import compose_config
     from rlplat.experiment.factory import build_env
 
@@ -130,6 +135,61 @@ def test_compiled_update_matches_eager(scenarios):
             agents[0].loss.state_dict().items(), agents[1].loss.state_dict().values(), strict=True
         ):
             assert torch.allclose(a, b, atol=1e-4), name
+
+
+@pytest.mark.slow
+def test_compiled_update_from_a_replay_buffer_matches_eager(scenarios):
+    """What the training loop runs: n-step transitions in a replay buffer, the compiled update
+    drawing its own rows, against the eager update on ``buffer.sample()`` (the same draws);
+    a checkpoint taken midway loads into a fresh compiled agent and into an eager one."""
+    import torch._inductor.config
+    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+    from rlplat.agents.sac import SACAgent, net_spec
+    from rlplat.experiment.config import compose_config
+    from rlplat.experiment.factory import build_env
+    from rlplat.experiment.training import replay
+
+    cfg = compose_config("train", [f"scenarios_dir={scenarios.path}"])
+    assert cfg.algo.n_steps > 1  # the default: transitions carry steps_to_next_obs
+    env = build_env(cfg, scenarios=scenarios, split="train", num_envs=16)
+    td, steps = env.reset(), []
+    for _ in range(8):
+        out, td = env.step_and_maybe_reset(td.set("action", env.action_spec.rand()))
+        steps.append(out)
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(1000), batch_size=32)
+    buffer.extend(replay(torch.stack(steps, dim=1), env.group, cfg.algo))
+
+    def agent(compile_):
+        torch.manual_seed(0)
+        return SACAgent(
+            net_spec(env.obs_fn.scale, 3, cfg.algo), env.action_spec[0], gamma=0.99, tau=0.02,
+            actor_lr=1e-3, critic_lr=1e-3, alpha_lr=1e-3, compile=compile_,
+        )  # fmt: skip
+
+    # Compiled code draws from eager's RNG stream; the config patch is undone on exit.
+    with torch._inductor.config.patch(fallback_random=True):
+        eager, compiled = agent(False), agent(True)
+        for step in range(2 * SACAgent.WARMUP_CALLS + 2):
+            if step == SACAgent.WARMUP_CALLS + 1:  # a checkpoint, resumed by a new agent
+                state = compiled.state_dict()
+                assert state.keys() == eager.state_dict().keys()
+                for k, o in state["optimizers"].items():
+                    assert o["state"].keys() == eager.optimizers[k].state_dict()["state"].keys()
+                compiled = agent(True)
+                compiled.load_state_dict(state)
+                agent(False).load_state_dict(state)  # the eager agent reads it too
+            torch.manual_seed(step)
+            expected = eager.update(buffer.sample())
+            torch.manual_seed(step)
+            got = compiled.update_from(buffer)
+            assert got.keys() == expected.keys()
+            for name in expected:
+                assert got[name].item() == pytest.approx(expected[name].item(), rel=1e-3), name
+    for (name, a), b in zip(
+        eager.loss.state_dict().items(), compiled.loss.state_dict().values(), strict=True
+    ):
+        assert torch.allclose(a, b, atol=1e-4), name
 
 
 def test_action_margin_reaches_full_scale_inside_the_bounds():

@@ -10,11 +10,12 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import nn
-from torchrl.data import TensorSpec
+from torchrl.data import RandomSampler, ReplayBuffer, TensorSpec, TensorStorage
 from torchrl.envs.utils import ExplorationType
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import SACLoss, SoftUpdate
 
+from rlplat.agents.compiled import CompiledUpdate, compiled_update_keys
 from rlplat.errors import ConfigError
 
 ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh, "elu": nn.ELU}
@@ -158,6 +159,10 @@ class FusedSoftUpdate(SoftUpdate):
             self._targets.get(("target_" + k[0], *k[1:])).data for k in map(_as_tuple, keys)
         ]
         self._sources_flat = [self._sources.get(k).data for k in keys]
+        #: (target, source) with each source as the loss holds it (a trained parameter or a
+        #: buffer), for a compiled step that also updates the parameters.
+        sources = [self._sources.get(k) for k in keys]
+        self.pairs = list(zip(self._targets_flat, sources, strict=True))
 
     def step(self) -> None:
         torch._foreach_lerp_(self._targets_flat, self._sources_flat, 1.0 - self.eps)
@@ -179,7 +184,9 @@ class SACAgent:
         alpha_init: initial entropy coefficient.
         target_entropy: ``"auto"`` (minus the action dimension) or a number.
         loss_function: critic regression loss, ``l2`` or ``smooth_l1``.
-        compile: wrap the update in ``torch.compile``.
+        compile: run the update compiled (:class:`rlplat.agents.compiled.CompiledUpdate`: the
+            same losses, Adam steps and soft update as the eager update, in one compiled
+            graph).
         group: the env's group key of a team of learners (None for a lone learner). The loss
             trains on one drone's transitions at a time (flat keys, see
             :func:`rlplat.agents.transitions.agent_rows`); ``policy`` flies the whole team with
@@ -235,27 +242,57 @@ class SACAgent:
             ),
             "alpha": torch.optim.Adam([self.loss.log_alpha], alpha_lr),
         }
-        self._update = torch.compile(self._update_eager) if compile else self._update_eager
-        self._compiled_calls = 0 if compile else None
+        self._compiled = (
+            CompiledUpdate(
+                self.loss,
+                self.optimizers,
+                self.target_updater.pairs,
+                1.0 - self.target_updater.eps,  # FusedSoftUpdate's weight, to the last bit
+            )
+            if compile
+            else None
+        )
+        self._columns: tuple | None = None  # the storage update_from read last, and how
 
-    #: Compiled updates run with guard checks until then; later batches have the same keys,
-    #: shapes and dtypes (one replay buffer, one batch size), so the guards are skipped.
-    WARMUP_CALLS = 3
+    #: Compiled updates run with guard checks for this many calls, then without.
+    WARMUP_CALLS = CompiledUpdate.WARMUP_CALLS
 
-    def update(self, batch: TensorDictBase) -> dict[str, float]:
+    def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         """One gradient step on every loss, then the soft target update; returns the losses."""
-        if self._compiled_calls is None or self._compiled_calls < self.WARMUP_CALLS:
-            out = self._update(batch)
-            if self._compiled_calls is not None:
-                self._compiled_calls += 1
-        else:
-            # Guard evaluation costs as much as the small networks' arithmetic. Skipping it is
-            # sound only while every batch looks like the warm-up ones, which a run's single
-            # replay buffer and batch size guarantee.
-            with torch.compiler.set_stance("default", skip_guard_eval_unsafe=True):
-                out = self._update(batch)
-        self.target_updater.step()
-        return out
+        if self._compiled is None:
+            out = self._update_eager(batch)
+            self.target_updater.step()
+            return out
+        keys = self._batch_keys(batch)
+        return self._compiled(keys, [batch.get(k) for k in keys], None)
+
+    def update_from(self, buffer: ReplayBuffer) -> dict[str, torch.Tensor]:
+        """:meth:`update` on a batch drawn from ``buffer`` as ``buffer.sample()`` draws it.
+
+        Compiled, the rows are drawn by the buffer's own sampler and gathered from its storage
+        inside the compiled update, so that no batch ``TensorDict`` is built in Python.
+        """
+        if self._compiled is None:
+            return self.update(buffer.sample())
+        storage = buffer.storage
+        rows = getattr(storage, "_storage", None)  # a TensorStorage's preallocated tensors
+        if self._columns is None or self._columns[0] is not rows:
+            sampler = buffer.sampler
+            if not (
+                isinstance(storage, TensorStorage)
+                and isinstance(rows, TensorDictBase)
+                and type(sampler) is RandomSampler
+            ):
+                return self.update(buffer.sample())
+            keys = self._batch_keys(rows)
+            self._columns = (rows, sampler, buffer.batch_size, keys, [rows.get(k) for k in keys])
+        _, sampler, batch_size, keys, columns = self._columns
+        index, _ = sampler.sample(storage, batch_size)
+        return self._compiled(keys, columns, index)
+
+    def _batch_keys(self, batch: TensorDictBase) -> tuple:
+        """The entries of ``batch`` the loss reads (:func:`compiled_update_keys`)."""
+        return compiled_update_keys(self.loss, lambda key: key in batch.keys(True, True))
 
     def _update_eager(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         losses = self.loss(batch)
@@ -285,6 +322,8 @@ class SACAgent:
         self.loss.load_state_dict(state["loss"])
         for k, o in self.optimizers.items():
             o.load_state_dict(state["optimizers"][k])
+        if self._compiled is not None:
+            self._compiled.bind()  # the optimisers' state tensors are new ones
 
 
 def net_spec(obs_scale: Sequence[float], action_dim: int, algo: Mapping[str, Any]) -> NetSpec:

@@ -196,7 +196,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
                 losses = []
                 while update_credit >= 1.0:
                     with held_actor(agent, state.updates < algo.actor_warmup_updates):
-                        losses.append(agent.update(buffer.sample()))
+                        losses.append(agent.update_from(buffer))
                     update_credit -= 1.0
                     state.updates += 1
                 if losses:
