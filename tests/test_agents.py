@@ -96,7 +96,10 @@ def test_compiled_update_matches_eager(scenarios, monkeypatch):
     from rlplat.experiment.config import compose_config
     from rlplat.experiment.factory import build_env
 
-    cfg = compose_config("train", [f"scenarios_dir={scenarios.path}", "algo.batch_size=64"])
+    # eq. 1 and 2 with a randomly initialised actor (attacker_v4 zeroes its mean rows)
+    cfg = compose_config(
+        "train", ["drone=attacker_v3", f"scenarios_dir={scenarios.path}", "algo.batch_size=64"]
+    )
     env = build_env(cfg, scenarios=scenarios, split="train", num_envs=64)
     td = env.rand_step(env.reset())
     batch = td.select("observation", "action", ("next", "observation"), ("next", "reward"),
