@@ -117,7 +117,7 @@ def pytest_configure(config):
 def _torch_threads_restored():
     """A test that trains in-process with ``train.threads`` sets torch's thread count for the
     whole process; put it back, so that later tests (and their subprocesses) run as the suite
-    was started."""
+    was started. (A module-scoped fixture must not train that way: it runs before this.)"""
     threads = torch.get_num_threads()
     yield
     if torch.get_num_threads() != threads:

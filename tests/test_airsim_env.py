@@ -354,7 +354,7 @@ def test_a_trained_checkpoint_is_evaluated_on_the_test_server_through_evaluate_p
     scenarios, tiny_run, run_python, tmp_path
 ):
     run_dir = tmp_path / "run"
-    tiny_run(scenarios, run_dir, "train.threads=1")  # on the embedded velocity model
+    tiny_run(scenarios, run_dir)  # on the embedded velocity model
     with TestServer(SETTINGS) as srv:
         res = run_python(
             "evaluate.py", f"run_dir={run_dir}", *airsim(srv.address), "plots=false",

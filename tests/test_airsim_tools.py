@@ -245,7 +245,7 @@ def tiny_run_dir(scenarios, tiny_run, tmp_path_factory):
     # function of the state. attacker_v4 adds proportional navigation, whose per-axis
     # saturation and largest-gap time to go switch on the last bits of a position, so the two
     # simulators' float32 and float64 states part by centimetres instead of micrometres.
-    tiny_run(scenarios, run_dir, "train.threads=1", "drone=attacker_v3")
+    tiny_run(scenarios, run_dir, "drone=attacker_v3")
     return run_dir
 
 
