@@ -251,11 +251,8 @@ def evaluate_run(
     source = "summary.json" if "scenario_digest" in run_summary else "checkpoint"
     same_set = check_scenarios(scenarios, expected, strict_scenarios, source)
     n = len(scenarios.split(split))
-    env_cfg = cfg
-    if not learned and cfg.action.get("name") != "velocity":
-        # A baseline flies its own velocity commands (eq. 2), not through a learner's action.
-        env_cfg = OmegaConf.merge(cfg, {"action": None})
-        env_cfg.action = {"name": "velocity"}
+    # A baseline flies its own velocity commands (eq. 2), not through a learner's action.
+    env_cfg = cfg if learned else plain_action(cfg)
     overrides = {} if attackers is None else {"attackers": attackers}
     if cfg.dynamics.name == "airsim":
         overrides["compile_step"] = False  # a step there is calls to the simulator
@@ -331,14 +328,22 @@ def evaluate_run(
     return Evaluation(rows, summary, results, out_dir)
 
 
+def plain_action(cfg: DictConfig) -> DictConfig:
+    """``cfg`` with the plain velocity action (eq. 2) in place of any other."""
+    if cfg.action.get("name") == "velocity":
+        return cfg
+    plain = OmegaConf.merge(cfg, {"action": None})
+    plain.action = {"name": "velocity"}
+    return plain
+
+
 def split_ceiling(cfg, env_cfg, env: PursuitEnv, scenarios, split: str, device):
     """The capture ceiling of the split (:mod:`rlplat.eval.ceiling`), or None where it is not
     defined: a defender learner, or dynamics that are not separable per axis."""
     if ROLES[env.learner] != "attacker" or cfg.dynamics.get("name") != "velocity":
         return None
     if env_cfg.action.get("name") != "velocity":
-        env_cfg = OmegaConf.merge(cfg, {"action": None})
-        env_cfg.action = {"name": "velocity"}
+        env_cfg = plain_action(cfg)
         env = build_env(env_cfg, scenarios=scenarios, split=split, num_envs=env.batch_size[0],
                         device=device, scenario_order="sequential",
                         attackers=env.num_attackers)  # fmt: skip
