@@ -1,0 +1,111 @@
+"""How good can a guidance law get on a scenario set: a grid of proportional-navigation laws.
+
+Flies every law of a grid (gain x lead x longest prediction, :class:`ProportionalNavigation`;
+lead 0 is pure pursuit) over the validation and the test split of the configured set, on the
+run's plain velocity action, and prints one markdown table:
+
+- each law's capture rate on both splits, overall and per defender strategy (``setpoints``:
+  the defender flies its route; ``nn``: the defender network reacts to the attacker);
+- the law with the best validation capture rate, flown on test (a law chosen on validation: what
+  tuning a closed-form law buys, measured on scenarios it was not chosen on);
+- the union: the scenarios that some law of the grid captures. No single policy is bound by it,
+  but it is reachable scenario by scenario (each of its captures was flown), so it bounds the
+  best achievable rate from below: on route-flying defenders next to the capture ceiling
+  (:mod:`rlplat.eval.ceiling`, the bound from above), on network defenders where no ceiling is
+  defined.
+
+    .venv/bin/python benchmarks/guidance_laws.py [overrides ...] [--gains 1 2 5] \
+        [--leads 0.5 0.75 1 1.5] [--horizons 4 8 16]
+
+Overrides are ``train.py``'s (e.g. ``scenarios_dir=DIR``, ``scenario=pursuit_2v1``). About 10 s
+per law on one CPU thread for the default set (2,000 validation and 500 test scenarios).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import subprocess
+
+import torch
+
+from rlplat.agents.policies import make_scripted_policy
+from rlplat.eval.episodes import evaluate
+from rlplat.experiment.config import compose_config
+from rlplat.experiment.evaluation import plain_action, split_ceiling
+from rlplat.experiment.factory import build_env, resolve_scenarios
+from rlplat.scenarios import STRATEGIES
+
+SPLITS = ("val", "test")
+
+
+def captures(env, gain: float, lead: float, horizon: float) -> torch.Tensor:
+    """(E,) bool per scenario of ``env``'s split: captured by the law."""
+    law = make_scripted_policy(
+        "proportional_navigation", env, gain=gain, lead=lead, max_lead_time=horizon
+    )
+    result = evaluate(env, law)
+    out = torch.zeros(len(env.scenarios), dtype=torch.bool)
+    out[result.scenario_index] = result.captured
+    return out
+
+
+def rates(captured: torch.Tensor, network: torch.Tensor) -> str:
+    """``all / setpoints / nn`` capture rates."""
+    parts = [captured, captured[~network], captured[network]]
+    return " | ".join(f"{p.float().mean().item():.3f}" for p in parts)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("overrides", nargs="*", help="train.py overrides")
+    parser.add_argument("--gains", type=float, nargs="+", default=[1.0, 2.0, 5.0])
+    parser.add_argument("--leads", type=float, nargs="+", default=[0.5, 0.75, 1.0, 1.5])
+    parser.add_argument("--horizons", type=float, nargs="+", default=[4.0, 8.0, 16.0])
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+
+    cfg = plain_action(compose_config("train", args.overrides))
+    scenarios = resolve_scenarios(cfg, cfg.scenarios_dir)
+    envs, network = {}, {}
+    for split in SPLITS:
+        n = len(scenarios.split(split))
+        envs[split] = build_env(cfg, scenarios=scenarios, split=split, num_envs=n,
+                                scenario_order="sequential")  # fmt: skip
+        strategy = scenarios.split(split)["defender_strategy"]
+        network[split] = (strategy == STRATEGIES.index("nn")).any(-1)
+
+    default = (float(cfg.env.pursuit_gain), 0.5, 4.0)
+    laws = [default] + [
+        law for law in itertools.product(args.gains, args.leads, args.horizons) if law != default
+    ]
+    table = {law: {s: captures(envs[s], *law) for s in SPLITS} for law in laws}
+
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
+                            text=True).stdout.strip()  # fmt: skip
+    print(f"commit {commit}; {len(laws)} laws; scenario set {scenarios.digest[:12]}; "
+          f"capture rate: all | setpoints | nn\n")  # fmt: skip
+    print("| gain [1/s] | lead | longest prediction [s] | validation: all | setpoints | nn "
+          "| test: all | setpoints | nn |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|---|")
+    for law, caps in table.items():
+        tag = " (the default law)" if law == default else ""
+        print(
+            f"| {law[0]:g} | {law[1]:g} | {law[2]:g}{tag} | "
+            f"{rates(caps['val'], network['val'])} | {rates(caps['test'], network['test'])} |"
+        )
+
+    best = max(laws, key=lambda law: table[law]["val"].float().mean().item())
+    print(f"\nChosen on validation: gain {best[0]:g}, lead {best[1]:g}, longest prediction "
+          f"{best[2]:g} s; on test: {rates(table[best]['test'], network['test'])}")  # fmt: skip
+    for split in SPLITS:
+        union = torch.stack([table[law][split] for law in laws]).any(0)
+        ceiling = split_ceiling(cfg, cfg, envs[split], scenarios, split, "cpu")
+        print(
+            f"Union of the grid on {split}: {rates(union, network[split])}; capture ceiling "
+            f"on route-flying defenders {ceiling[~network[split]].mean().item():.3f}"
+        )
+
+
+if __name__ == "__main__":
+    main()
