@@ -20,7 +20,7 @@ from torchrl.envs.utils import check_env_specs
 from rlplat import make_env, make_gym_env
 from rlplat.agents.checkpoint import load_checkpoint
 from rlplat.envs.airsim import enu_to_ned, make_settings, vehicle_names
-from rlplat.envs.airsim.client import AirSimError, parse_endpoint, plain
+from rlplat.envs.airsim.client import AirSimClient, AirSimError, parse_endpoint, plain
 from rlplat.envs.airsim.dynamics import AirSimDynamics
 from rlplat.envs.airsim.testserver import TestServer
 from rlplat.envs.dynamics import VelocityDynamics
@@ -94,6 +94,27 @@ def test_importing_the_envs_does_not_import_the_client_library():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_calls_sent_together_go_out_in_one_write_and_the_first_failure_in_order_is_the_error(
+    server,
+):
+    client = AirSimClient(server.address, connect_timeout_s=2.0, timeout_s=1.0)
+    stream = client._api.client._transport._sockets[0]._stream
+    writes, write = [], stream.write
+    stream.write = lambda data: writes.append(data) or write(data)
+    calls = [("getMultirotorState", "Attacker"), ("getMultirotorState", "Ghost"),
+             ("simGetCollisionInfo", "Ghost")]  # fmt: skip
+    futures = [client.send(method, name) for method, name in calls]
+    assert writes == []  # nothing goes out until something is awaited
+    with pytest.raises(AirSimError) as info:
+        client.gather(futures, [method for method, _ in calls], "the test")
+    assert len(writes) == 1
+    message = str(info.value)
+    assert message.startswith(f"simulator at {server.address} refused getMultirotorState (the")
+    assert "'Ghost' is not available" in message
+    assert client.vehicles() == ["Attacker", "Defender"]  # the session goes on
+    client.close()
 
 
 # The env on one simulator ------------------------------------------------------------------

@@ -15,7 +15,10 @@ it adds to the library is what a lock-step loop needs to fail cleanly:
 
 Moves are sent without waiting for their end (a move answers only when it is done or cancelled,
 and the simulation is paused between steps: waiting on one would block until the timeout). State
-reads of several vehicles are sent together and awaited together: one round trip per step.
+reads of several vehicles are sent together and awaited together: one round trip per step. What is
+sent without waiting goes out in one write with the next call that waits (a step's moves with its
+``simContinueForTime``), and answers awaited together are awaited in one run of the event loop
+under one deadline: a lock step is two writes and two waits, whatever the number of vehicles.
 """
 
 from __future__ import annotations
@@ -25,7 +28,6 @@ import json
 import logging
 import math
 import socket
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from types import SimpleNamespace
@@ -71,9 +73,15 @@ def parse_endpoint(text: Any, field: str = "dynamics.endpoints") -> tuple[str, i
     )
 
 
+#: Types that go on the wire as they are.
+_WIRE_TYPES = frozenset({bool, int, float, str, type(None)})
+
+
 def plain(value: Any) -> Any:
     """``value`` as what may go on the wire: a Python bool, int, float or str (numpy and torch
     scalars, 0-d arrays and tensors converted), or a list/dict of them."""
+    if type(value) in _WIRE_TYPES:  # already plain (most arguments)
+        return value
     if isinstance(value, (bool, str)) or value is None:
         return value
     if isinstance(value, (list, tuple)):
@@ -113,12 +121,24 @@ def _retrieved(task) -> None:
         task.exception()
 
 
+def _settled(futures: Sequence[Any]) -> bool:
+    """Every future answered, or one failed after all those before it were answered."""
+    for future in futures:
+        if not future._set_flag:
+            return False
+        if future._error is not None:
+            return True
+    return True
+
+
 def _session_types():
     """The msgpack-rpc session and transport the library rides on, with rlplat's policy: no
     silent reconnect after a loss, and read errors kept quiet (the loss is reported)."""
     import msgpackrpc
+    from msgpackrpc.future import Future
+    from msgpackrpc.message import REQUEST
     from msgpackrpc.transport import tcp
-    from tornado.iostream import IOStream
+    from tornado.iostream import IOStream, StreamClosedError
 
     class Socket(tcp.ClientSocket):
         async def on_connect(self):
@@ -138,8 +158,12 @@ def _session_types():
             self._session.on_connect_failed(_Lost("the simulator closed the connection"))
 
     class Session(msgpackrpc.Client):
+        """The library's session, driven in batches: a request is packed into an outbox when it
+        is sent, the outbox goes out in one write when something is awaited, and the loop runs
+        once for all the answers awaited together (no task, timer or loop restart per call)."""
+
         def __init__(self, host: str, port: int) -> None:
-            # timeout=0: no library timer; every wait has its own deadline (wait()).
+            # timeout=0: no library timer; every wait has its own deadline (settle()).
             super().__init__(
                 msgpackrpc.Address(host, port),
                 timeout=0,
@@ -148,29 +172,77 @@ def _session_types():
                 pack_encoding="utf-8",
                 unpack_encoding="utf-8",
             )
+            self._outbox: list[bytes] = []
+            self._awaited: Sequence[Any] | None = None
 
         def send_request(self, method, args):
-            future = super().send_request(method, args)
-            future.task.add_done_callback(_retrieved)  # a send on a lost connection: reported
+            sockets = self._transport._sockets
+            if not sockets:  # still connecting: the library queues it until connected
+                future = super().send_request(method, args)
+                future.task.add_done_callback(_retrieved)  # a send on a lost connection: reported
+                return future
+            msgid = next(self._generator)
+            self._outbox.append(sockets[0]._packer.pack([REQUEST, msgid, method, args]))
+            future = Future(self._loop, self._timeout)
+            self._request_table[msgid] = future
             return future
 
-        def call(self, method, *args):
-            return self.wait(self.call_async(method, *args), self.deadline_s)
+        def flush(self) -> None:
+            """Write the requests sent since the last flush, in one write. A stream already
+            closed is left to its close callback (it fails every pending call)."""
+            if not self._outbox:
+                return
+            data, self._outbox = b"".join(self._outbox), []
+            sockets = self._transport._sockets if self._transport is not None else ()
+            if sockets:
+                try:
+                    sockets[0]._stream.write(data)
+                except StreamClosedError:
+                    pass
 
-        def wait(self, future, seconds: float):
-            """The future's result, or ``_Expired`` after ``seconds``."""
+        def close(self) -> None:
+            self._outbox = []
+            super().close()
+
+        def call(self, method, *args):
+            future = self.call_async(method, *args)
+            self.settle((future,), self.deadline_s)
+            return future.get()
+
+        def settle(self, futures: Sequence[Any], seconds: float) -> None:
+            """Run the loop until ``futures`` are answered, or one of them failed after all
+            those before it were answered, for at most ``seconds``; those still unanswered
+            then fail with ``_Expired``."""
+            self.flush()
+            if _settled(futures):
+                return
             ioloop = self._loop._ioloop
 
             def expire():
-                if not future._set_flag:
-                    future.set_error(_Expired())
-                    self._loop.stop()
+                for future in futures:
+                    if not future._set_flag:
+                        future.set_error(_Expired())
+                self._loop.stop()
 
             handle = ioloop.call_later(seconds, expire)
+            self._awaited = futures
             try:
-                return future.get()
+                while not _settled(futures):
+                    self._loop.start()
             finally:
+                self._awaited = None
                 ioloop.remove_timeout(handle)
+
+        def on_response(self, msgid, error, result):
+            future = self._request_table.pop(msgid, None)
+            if future is None:
+                return
+            if error is not None:
+                future.set_error(error)
+            else:
+                future.set_result(result)
+            if self._awaited is None or _settled(self._awaited):
+                self._loop.stop()
 
     return Session
 
@@ -250,10 +322,14 @@ class AirSimClient:
         return self._guard(method, what, lambda: fn(*plain(list(args))))
 
     def _guard(self, method: str, what: str, thunk) -> Any:
-        from msgpackrpc.error import RPCError
-
         if self._api is None or self._api.client._transport is None:
             raise AirSimError(f"simulator at {self.address}: the connection is closed ({what})")
+        return self._answer(method, what, thunk)
+
+    def _answer(self, method: str, what: str, thunk) -> Any:
+        """``thunk()``, its faults as :class:`AirSimError` naming ``method`` and ``what``."""
+        from msgpackrpc.error import RPCError
+
         try:
             return thunk()
         except RPCError as e:
@@ -274,21 +350,36 @@ class AirSimClient:
             ) from None
 
     def send(self, method: str, *args: Any):
-        """Send ``method`` without waiting for its answer (a future for :meth:`gather`)."""
+        """Send ``method`` without waiting for its answer (a future for :meth:`gather`; it goes
+        out with the next wait)."""
         if self._api is None or self._api.client._transport is None:
             raise AirSimError(f"simulator at {self.address}: the connection is closed ({method})")
         return self._api.client.call_async(method, *plain(list(args)))
 
-    def gather(self, futures: Sequence[Any], method: str, what: str) -> list[Any]:
-        """The answers to futures sent together, within one ``timeout_s`` deadline."""
-        deadline = time.monotonic() + self.timeout_s
+    def gather(
+        self, futures: Sequence[Any], method: str | Sequence[str], what: str
+    ) -> list[Any]:
+        """The answers to futures sent together, within one ``timeout_s`` deadline: the loop
+        runs once for all of them; the first that failed, in order, is the error.
+
+        Args:
+            futures: from :meth:`send`.
+            method: the method each future called (one name for all, or one per future), for
+                the errors.
+            what: what was being waited for, for the errors.
+        """
+        if not futures:
+            return []
+        methods = [method] * len(futures) if isinstance(method, str) else list(method)
         session = self._api.client
-        return [
-            self._guard(
-                method, what, lambda f=f: session.wait(f, max(0.0, deadline - time.monotonic()))
-            )
-            for f in futures
-        ]
+
+        def first() -> Any:
+            session.settle(futures, self.timeout_s)
+            return futures[0].get()
+
+        answers = [self._guard(methods[0], what, first)]
+        pairs = zip(futures[1:], methods[1:], strict=True)
+        return answers + [self._answer(m, what, f.get) for f, m in pairs]
 
     # What a lock-step loop uses ----------------------------------------------------------
 
@@ -364,8 +455,9 @@ class AirSimClient:
         lib = self._lib
         states = [self.send("getMultirotorState", n) for n in names]
         hits = [self.send("simGetCollisionInfo", n) for n in names]
-        raw_states = self.gather(states, "getMultirotorState", what)
-        raw_hits = self.gather(hits, "simGetCollisionInfo", what)
+        methods = ["getMultirotorState"] * len(names) + ["simGetCollisionInfo"] * len(names)
+        answers = self.gather(states + hits, methods, what)
+        raw_states, raw_hits = answers[: len(names)], answers[len(names) :]
         out = []
         for raw in raw_states:
             s = lib.MultirotorState.from_msgpack(raw)
