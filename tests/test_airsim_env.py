@@ -117,6 +117,39 @@ def test_calls_sent_together_go_out_in_one_write_and_the_first_failure_in_order_
     client.close()
 
 
+def test_a_simulator_that_sends_a_non_response_is_not_read_further_and_times_out(caplog):
+    import threading
+
+    import msgpack
+
+    listener = socket.create_server(("127.0.0.1", 0))
+    port = listener.getsockname()[1]
+
+    def serve() -> None:  # answers the first call (the ping), then sends a notification
+        answered = 0
+        while answered < 2:  # the client's probe connects and closes first
+            conn, _ = listener.accept()
+            unpacker = msgpack.Unpacker(raw=False)
+            while answered < 2 and (data := conn.recv(65536)):
+                unpacker.feed(data)
+                for _, msgid, _, _ in unpacker:
+                    reply = [1, msgid, None, True] if answered == 0 else [2, "surprise", []]
+                    conn.sendall(msgpack.packb(reply))
+                    answered += 1
+        time.sleep(1.0)
+        conn.close()
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    client = AirSimClient(f"127.0.0.1:{port}", connect_timeout_s=2.0, timeout_s=0.5)
+    with pytest.raises(AirSimError, match=r"stopped answering: no answer to listVehicles"):
+        client.vehicles()
+    assert "not a msgpack-rpc response" in caplog.text
+    client.close()
+    thread.join()
+    listener.close()
+
+
 # The env on one simulator ------------------------------------------------------------------
 
 

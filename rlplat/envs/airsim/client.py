@@ -121,6 +121,10 @@ def _retrieved(task) -> None:
         task.exception()
 
 
+def _ignore(data: bytes) -> None:
+    """A sink that drops what it is given."""
+
+
 def _settled(futures: Sequence[Any]) -> bool:
     """Every future answered, or one failed after all those before it were answered."""
     for future in futures:
@@ -133,22 +137,51 @@ def _settled(futures: Sequence[Any]) -> bool:
 
 def _session_types():
     """The msgpack-rpc session and transport the library rides on, with rlplat's policy: no
-    silent reconnect after a loss, and read errors kept quiet (the loss is reported)."""
+    silent reconnect after a loss, read errors kept quiet (the loss is reported), answers
+    handed to the session as they are read."""
     import msgpackrpc
     from msgpackrpc.future import Future
-    from msgpackrpc.message import REQUEST
+    from msgpackrpc.message import REQUEST, RESPONSE
     from msgpackrpc.transport import tcp
     from tornado.iostream import IOStream, StreamClosedError
+
+    class Stream(IOStream):
+        """A stream whose bytes go to ``sink`` as they are read, in the loop's I/O callback
+        (no read future and no coroutine step per arrival). End of stream and read errors
+        close it as any stream (its close callback reports the loss)."""
+
+        sink = None
+
+        def read_from_fd(self, buf):
+            count = super().read_from_fd(buf)
+            if not count or self.sink is None:
+                return count
+            self.sink(bytes(memoryview(buf)[:count]))
+            return None  # consumed: nothing for the stream's own buffer
 
     class Socket(tcp.ClientSocket):
         async def on_connect(self):
             self._stream.set_nodelay(True)  # small requests go out at once (no Nagle delay)
+            self._stream.sink = self.on_data
             await self._transport.on_connect(self)
-            await self.start_read(silent_errors=True)
+
+        def on_data(self, data: bytes) -> None:
+            """Answers to the session as they arrive. Anything else ends reading, as it ends
+            the library's read loop (the calls then time out)."""
+            self._unpacker.feed(data)
+            try:
+                for message in self._unpacker:
+                    if len(message) != 4 or message[0] != RESPONSE:
+                        raise ValueError(f"not a msgpack-rpc response: {message!r:.200}")
+                    self.on_response(message[1], message[2], message[3])
+            except Exception as e:
+                self._stream.sink = _ignore
+                host, port = self._transport._address.unpack()
+                log.warning("simulator at %s:%s: %s; no longer reading it", host, port, e)
 
     class Transport(tcp.ClientTransport):
         async def connect(self):
-            await Socket(IOStream(self._address.socket()), self).connect()
+            await Socket(Stream(self._address.socket()), self).connect()
 
         async def on_close(self, sock):
             if self._closed:
