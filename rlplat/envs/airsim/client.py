@@ -107,6 +107,19 @@ def _triple(v: Any) -> tuple[float, float, float]:
     return (float(v.x_val), float(v.y_val), float(v.z_val))
 
 
+def _fields(raw: Any) -> VehicleState | None:
+    """What a lock step reads of a ``getMultirotorState`` answer, taken straight from its map
+    (the values the library's ``MultirotorState`` would hold); None if a field is missing."""
+    try:
+        k = raw["kinematics_estimated"]
+        p, v = k["position"], k["linear_velocity"]
+        position = (float(p["x_val"]), float(p["y_val"]), float(p["z_val"]))
+        velocity = (float(v["x_val"]), float(v["y_val"]), float(v["z_val"]))
+        return VehicleState(position, velocity, int(raw["timestamp"]))
+    except (KeyError, TypeError, IndexError):
+        return None
+
+
 class _Lost(Exception):
     """The simulator closed the connection."""
 
@@ -484,7 +497,8 @@ class AirSimClient:
 
     def read(self, names: Sequence[str], what: str) -> tuple[list[VehicleState], list[bool]]:
         """Every vehicle's state and collision flag, sent together; the collision flag clears
-        on read (read it once per step)."""
+        on read (read it once per step). The fields are read from the answers' maps, through
+        the library's types only where an answer lacks one."""
         lib = self._lib
         states = [self.send("getMultirotorState", n) for n in names]
         hits = [self.send("simGetCollisionInfo", n) for n in names]
@@ -493,11 +507,20 @@ class AirSimClient:
         raw_states, raw_hits = answers[: len(names)], answers[len(names) :]
         out = []
         for raw in raw_states:
-            s = lib.MultirotorState.from_msgpack(raw)
-            k = s.kinematics_estimated
-            out.append(VehicleState(_triple(k.position), _triple(k.linear_velocity),
-                                    int(s.timestamp)))  # fmt: skip
-        return out, [bool(lib.CollisionInfo.from_msgpack(h).has_collided) for h in raw_hits]
+            state = _fields(raw)
+            if state is None:  # not the usual map: the library's reading (its defaults)
+                s = lib.MultirotorState.from_msgpack(raw)
+                k = s.kinematics_estimated
+                state = VehicleState(_triple(k.position), _triple(k.linear_velocity),
+                                     int(s.timestamp))  # fmt: skip
+            out.append(state)
+        hits = []
+        for raw in raw_hits:
+            if isinstance(raw, dict) and "has_collided" in raw:
+                hits.append(bool(raw["has_collided"]))
+            else:
+                hits.append(bool(lib.CollisionInfo.from_msgpack(raw).has_collided))
+        return out, hits
 
     def close(self) -> None:
         """Close the connection (the simulation stays as it is)."""
