@@ -99,10 +99,21 @@ def test_importing_the_envs_does_not_import_the_client_library():
 def test_calls_sent_together_go_out_in_one_write_and_the_first_failure_in_order_is_the_error(
     server,
 ):
+    class Counted:  # the connection's socket, its sends recorded
+        def __init__(self, sock) -> None:
+            self.sock, self.sent = sock, []
+
+        def send(self, data) -> int:
+            self.sent.append(bytes(data))
+            return self.sock.send(data)
+
+        def __getattr__(self, name):
+            return getattr(self.sock, name)
+
     client = AirSimClient(server.address, connect_timeout_s=2.0, timeout_s=1.0)
     stream = client._api.client._transport._sockets[0]._stream
-    writes, write = [], stream.write
-    stream.write = lambda data: writes.append(data) or write(data)
+    stream.socket = Counted(stream.socket)
+    writes = stream.socket.sent
     calls = [("getMultirotorState", "Attacker"), ("getMultirotorState", "Ghost"),
              ("simGetCollisionInfo", "Ghost")]  # fmt: skip
     futures = [client.send(method, name) for method, name in calls]

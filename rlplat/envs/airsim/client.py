@@ -234,15 +234,25 @@ def _session_types():
             return future
 
         def flush(self) -> None:
-            """Write the requests sent since the last flush, in one write. A stream already
-            closed is left to its close callback (it fails every pending call)."""
+            """Write the requests sent since the last flush, in one write: straight to the
+            socket when the stream has nothing queued, what the socket does not take (or an
+            error) through the stream. A stream already closed is left to its close callback
+            (it fails every pending call)."""
             if not self._outbox:
                 return
             data, self._outbox = b"".join(self._outbox), []
             sockets = self._transport._sockets if self._transport is not None else ()
-            if sockets:
+            if not sockets or sockets[0]._stream.closed():
+                return
+            stream = sockets[0]._stream
+            if not stream.writing():
                 try:
-                    sockets[0]._stream.write(data)
+                    data = data[stream.socket.send(data) :]
+                except OSError:  # would block, or an error the stream meets again and reports
+                    pass
+            if data:
+                try:
+                    stream.write(data)
                 except StreamClosedError:
                     pass
 
