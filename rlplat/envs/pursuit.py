@@ -501,7 +501,10 @@ class PursuitEnv(EnvBase):
         speed = self.max_speed[:, self.defenders]
         own_p, own_v = p[:, self.defenders], v[:, self.defenders]
         command = follow_route(own_p, target, route_done, speed, self.setpoint_gain)
-        if self.defender_network is not None:
+        flies = self.nn_defender & ~route_done if self.defender_network is not None else None
+        # Eager, the network runs only while some defender flies it (its output is unused
+        # otherwise); a compiled step always runs it (no data-dependent branch).
+        if flies is not None and (torch.compiler.is_compiling() or bool(flies.any())):
             near = nearest(own_p, p[:, self.attackers])
             view = DroneView(
                 own_p,
@@ -513,7 +516,7 @@ class PursuitEnv(EnvBase):
             )
             # A network defender flies eq. 2 (velocity) actions, whatever the learner's action.
             learned = self.defender_network(view).clamp(-1.0, 1.0) * speed.unsqueeze(-1)
-            command = torch.where((self.nn_defender & ~route_done).unsqueeze(-1), learned, command)
+            command = torch.where(flies.unsqueeze(-1), learned, command)
         return command
 
     def _attacker_command(self, p: Tensor) -> Tensor:
