@@ -20,7 +20,7 @@ from torchrl.envs.utils import check_env_specs
 from rlplat import make_env, make_gym_env
 from rlplat.agents.checkpoint import load_checkpoint
 from rlplat.envs.airsim import enu_to_ned, make_settings, vehicle_names
-from rlplat.envs.airsim.client import AirSimError, parse_endpoint, plain
+from rlplat.envs.airsim.client import AirSimClient, AirSimError, parse_endpoint, plain
 from rlplat.envs.airsim.dynamics import AirSimDynamics
 from rlplat.envs.airsim.testserver import TestServer
 from rlplat.envs.dynamics import VelocityDynamics
@@ -94,6 +94,71 @@ def test_importing_the_envs_does_not_import_the_client_library():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_calls_sent_together_go_out_in_one_write_and_the_first_failure_in_order_is_the_error(
+    server,
+):
+    class Counted:  # the connection's socket, its sends recorded
+        def __init__(self, sock) -> None:
+            self.sock, self.sent = sock, []
+
+        def send(self, data) -> int:
+            self.sent.append(bytes(data))
+            return self.sock.send(data)
+
+        def __getattr__(self, name):
+            return getattr(self.sock, name)
+
+    client = AirSimClient(server.address, connect_timeout_s=2.0, timeout_s=1.0)
+    stream = client._api.client._transport._sockets[0]._stream
+    stream.socket = Counted(stream.socket)
+    writes = stream.socket.sent
+    calls = [("getMultirotorState", "Attacker"), ("getMultirotorState", "Ghost"),
+             ("simGetCollisionInfo", "Ghost")]  # fmt: skip
+    futures = [client.send(method, name) for method, name in calls]
+    assert writes == []  # nothing goes out until something is awaited
+    with pytest.raises(AirSimError) as info:
+        client.gather(futures, [method for method, _ in calls], "the test")
+    assert len(writes) == 1
+    message = str(info.value)
+    assert message.startswith(f"simulator at {server.address} refused getMultirotorState (the")
+    assert "'Ghost' is not available" in message
+    assert client.vehicles() == ["Attacker", "Defender"]  # the session goes on
+    client.close()
+
+
+def test_a_simulator_that_sends_a_non_response_is_not_read_further_and_times_out(caplog):
+    import threading
+
+    import msgpack
+
+    listener = socket.create_server(("127.0.0.1", 0))
+    port = listener.getsockname()[1]
+
+    def serve() -> None:  # answers the first call (the ping), then sends a notification
+        answered = 0
+        while answered < 2:  # the client's probe connects and closes first
+            conn, _ = listener.accept()
+            unpacker = msgpack.Unpacker(raw=False)
+            while answered < 2 and (data := conn.recv(65536)):
+                unpacker.feed(data)
+                for _, msgid, _, _ in unpacker:
+                    reply = [1, msgid, None, True] if answered == 0 else [2, "surprise", []]
+                    conn.sendall(msgpack.packb(reply))
+                    answered += 1
+        time.sleep(1.0)
+        conn.close()
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    client = AirSimClient(f"127.0.0.1:{port}", connect_timeout_s=2.0, timeout_s=0.5)
+    with pytest.raises(AirSimError, match=r"stopped answering: no answer to listVehicles"):
+        client.vehicles()
+    assert "not a msgpack-rpc response" in caplog.text
+    client.close()
+    thread.join()
+    listener.close()
 
 
 # The env on one simulator ------------------------------------------------------------------

@@ -16,6 +16,7 @@ from rlplat.envs.airsim import (
     world_to_local,
     write_settings,
 )
+from rlplat.envs.airsim.frames import enu_rows_to_ned, ned_rows_to_enu
 from rlplat.errors import ConfigError
 
 # ENU <-> NED ----------------------------------------------------------------------------------
@@ -45,6 +46,23 @@ def test_round_trips_keep_the_input_kind():
 
 def test_ground_level_has_no_negative_zero():
     assert str(enu_to_ned((0.0, 0.0, 0.0))) == "(0.0, 0.0, 0.0)"
+
+
+def test_rows_of_floats_convert_bit_for_bit_as_their_float64_tensors():
+    g = torch.Generator().manual_seed(1)
+    rows = torch.randn(3, 3, dtype=torch.float64, generator=g)
+    rows[0] = torch.tensor([0.0, -0.0, 0.0])  # zeros keep the sign the tensor path gives them
+    spawn = torch.randn(3, 3, dtype=torch.float64, generator=g)
+    spawn[0] = 0.0
+    cases = [
+        (enu_rows_to_ned(rows.tolist()), enu_to_ned(rows)),
+        (ned_rows_to_enu(rows.tolist()), ned_to_enu(rows)),
+        (ned_rows_to_enu(rows.tolist(), spawn.tolist()), ned_to_enu(local_to_world(rows, spawn))),
+    ]
+    for got, want in cases:
+        assert all(type(v) is float for row in got for v in row)
+        bits = torch.tensor(got, dtype=torch.float64).view(torch.int64)
+        assert torch.equal(bits, want.view(torch.int64))
 
 
 def test_a_last_axis_other_than_three_is_refused():

@@ -378,8 +378,16 @@ class PursuitEnv(EnvBase):
         return self._tensordict(self._advance(action))
 
     def _tensordict(self, out: dict) -> TensorDictBase:
-        """The output entries as a tensordict; a team's group has the agent dimension."""
-        td = TensorDict(out, batch_size=self.batch_size, device=self.device)
+        """The output entries as a tensordict; a team's group has the agent dimension.
+
+        Built without per-entry checks when the dynamics' state is on the env's device (the
+        entries are then this env's own tensors, of its batch size, on its device), as
+        TorchRL's own env wrappers build their outputs.
+        """
+        if self.dynamics.position.device == self.device:
+            td = TensorDict._new_unsafe(out, batch_size=self.batch_size, device=self.device)
+        else:
+            td = TensorDict(out, batch_size=self.batch_size, device=self.device)
         if self.group is not None:
             td.get(self.group).batch_size = (*self.batch_size, self.team_size)
         return td
@@ -400,8 +408,8 @@ class PursuitEnv(EnvBase):
             attack, defend = own, self._defender_command(p, v, target, route_done)
         else:
             attack, defend = self._attacker_command(p), own
-        in_play = ~self.caught
-        defend = defend.masked_fill(~in_play.unsqueeze(-1), 0.0)  # a caught defender holds
+        caught, in_play = self.caught, ~self.caught
+        defend = defend.masked_fill(caught.unsqueeze(-1), 0.0)  # a caught defender holds
         rel_before = self._relative(p)
         to_target = (target - p[:, self.defenders]).norm(dim=-1)
         self.dynamics.advance(torch.cat([attack, defend], 1), self.control_period)
@@ -411,7 +419,7 @@ class PursuitEnv(EnvBase):
         to_target_after = (target - p[:, self.defenders]).norm(dim=-1)
         reached = (to_target_after <= self.setpoint_acceptance) & ~route_done & in_play
         self.waypoint = self.waypoint + reached
-        progress = (to_target - to_target_after).masked_fill(route_done | ~in_play, 0.0)
+        progress = (to_target - to_target_after).masked_fill(route_done | caught, 0.0)
 
         # Captures: any attacker's closest approach to a defender in play, during the step.
         rel = self._relative(p)
@@ -438,8 +446,8 @@ class PursuitEnv(EnvBase):
             )
         )
         if self.learner != ATTACKER:  # a defender caught before this step is out: no reward
-            total = total.masked_fill(~in_play, 0.0)
-            terms = {k: x.masked_fill(~in_play, 0.0) for k, x in terms.items()}
+            total = total.masked_fill(caught, 0.0)
+            terms = {k: x.masked_fill(caught, 0.0) for k, x in terms.items()}
         all_caught = self.caught.all(-1)
         terminated = all_caught | grounded
         if self.terminate_out_of_view:
@@ -474,9 +482,12 @@ class PursuitEnv(EnvBase):
         """A guided action's guidance for each attacker (N, k, 3): proportional navigation
         towards its nearest defender in play, from positions p and velocities v (N, k + m, 3)."""
         own, defenders = p[:, self.attackers], p[:, self.defenders]
-        near = nearest(own, defenders, targets(self.caught))
-        rel = gather_drones(defenders, near) - own
-        v_other = gather_drones(v[:, self.defenders], near)
+        if self.num_defenders == 1:  # every attacker's nearest: the one defender
+            rel, v_other = defenders - own, v[:, self.defenders].expand_as(own)
+        else:
+            near = nearest(own, defenders, targets(self.caught))
+            rel = gather_drones(defenders, near) - own
+            v_other = gather_drones(v[:, self.defenders], near)
         return self.action_fn.guidance(rel, v_other, self.max_speed[:, self.attackers])
 
     def _relative(self, p: Tensor) -> Tensor:
@@ -501,7 +512,10 @@ class PursuitEnv(EnvBase):
         speed = self.max_speed[:, self.defenders]
         own_p, own_v = p[:, self.defenders], v[:, self.defenders]
         command = follow_route(own_p, target, route_done, speed, self.setpoint_gain)
-        if self.defender_network is not None:
+        flies = self.nn_defender & ~route_done if self.defender_network is not None else None
+        # Eager, the network runs only while some defender flies it (its output is unused
+        # otherwise); a compiled step always runs it (no data-dependent branch).
+        if flies is not None and (torch.compiler.is_compiling() or bool(flies.any())):
             near = nearest(own_p, p[:, self.attackers])
             view = DroneView(
                 own_p,
@@ -513,7 +527,7 @@ class PursuitEnv(EnvBase):
             )
             # A network defender flies eq. 2 (velocity) actions, whatever the learner's action.
             learned = self.defender_network(view).clamp(-1.0, 1.0) * speed.unsqueeze(-1)
-            command = torch.where((self.nn_defender & ~route_done).unsqueeze(-1), learned, command)
+            command = torch.where(flies.unsqueeze(-1), learned, command)
         return command
 
     def _attacker_command(self, p: Tensor) -> Tensor:

@@ -15,7 +15,10 @@ it adds to the library is what a lock-step loop needs to fail cleanly:
 
 Moves are sent without waiting for their end (a move answers only when it is done or cancelled,
 and the simulation is paused between steps: waiting on one would block until the timeout). State
-reads of several vehicles are sent together and awaited together: one round trip per step.
+reads of several vehicles are sent together and awaited together: one round trip per step. What is
+sent without waiting goes out in one write with the next call that waits (a step's moves with its
+``simContinueForTime``), and answers awaited together are awaited in one run of the event loop
+under one deadline: a lock step is two writes and two waits, whatever the number of vehicles.
 """
 
 from __future__ import annotations
@@ -25,7 +28,6 @@ import json
 import logging
 import math
 import socket
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from types import SimpleNamespace
@@ -71,9 +73,15 @@ def parse_endpoint(text: Any, field: str = "dynamics.endpoints") -> tuple[str, i
     )
 
 
+#: Types that go on the wire as they are.
+_WIRE_TYPES = frozenset({bool, int, float, str, type(None)})
+
+
 def plain(value: Any) -> Any:
     """``value`` as what may go on the wire: a Python bool, int, float or str (numpy and torch
     scalars, 0-d arrays and tensors converted), or a list/dict of them."""
+    if type(value) in _WIRE_TYPES:  # already plain (most arguments)
+        return value
     if isinstance(value, (bool, str)) or value is None:
         return value
     if isinstance(value, (list, tuple)):
@@ -99,6 +107,19 @@ def _triple(v: Any) -> tuple[float, float, float]:
     return (float(v.x_val), float(v.y_val), float(v.z_val))
 
 
+def _fields(raw: Any) -> VehicleState | None:
+    """What a lock step reads of a ``getMultirotorState`` answer, taken straight from its map
+    (the values the library's ``MultirotorState`` would hold); None if a field is missing."""
+    try:
+        k = raw["kinematics_estimated"]
+        p, v = k["position"], k["linear_velocity"]
+        position = (float(p["x_val"]), float(p["y_val"]), float(p["z_val"]))
+        velocity = (float(v["x_val"]), float(v["y_val"]), float(v["z_val"]))
+        return VehicleState(position, velocity, int(raw["timestamp"]))
+    except (KeyError, TypeError, IndexError):
+        return None
+
+
 class _Lost(Exception):
     """The simulator closed the connection."""
 
@@ -113,22 +134,67 @@ def _retrieved(task) -> None:
         task.exception()
 
 
+def _ignore(data: bytes) -> None:
+    """A sink that drops what it is given."""
+
+
+def _settled(futures: Sequence[Any]) -> bool:
+    """Every future answered, or one failed after all those before it were answered."""
+    for future in futures:
+        if not future._set_flag:
+            return False
+        if future._error is not None:
+            return True
+    return True
+
+
 def _session_types():
     """The msgpack-rpc session and transport the library rides on, with rlplat's policy: no
-    silent reconnect after a loss, and read errors kept quiet (the loss is reported)."""
+    silent reconnect after a loss, read errors kept quiet (the loss is reported), answers
+    handed to the session as they are read."""
     import msgpackrpc
+    from msgpackrpc.future import Future
+    from msgpackrpc.message import REQUEST, RESPONSE
     from msgpackrpc.transport import tcp
-    from tornado.iostream import IOStream
+    from tornado.iostream import IOStream, StreamClosedError
+
+    class Stream(IOStream):
+        """A stream whose bytes go to ``sink`` as they are read, in the loop's I/O callback
+        (no read future and no coroutine step per arrival). End of stream and read errors
+        close it as any stream (its close callback reports the loss)."""
+
+        sink = None
+
+        def read_from_fd(self, buf):
+            count = super().read_from_fd(buf)
+            if not count or self.sink is None:
+                return count
+            self.sink(bytes(memoryview(buf)[:count]))
+            return None  # consumed: nothing for the stream's own buffer
 
     class Socket(tcp.ClientSocket):
         async def on_connect(self):
             self._stream.set_nodelay(True)  # small requests go out at once (no Nagle delay)
+            self._stream.sink = self.on_data
             await self._transport.on_connect(self)
-            await self.start_read(silent_errors=True)
+
+        def on_data(self, data: bytes) -> None:
+            """Answers to the session as they arrive. Anything else ends reading, as it ends
+            the library's read loop (the calls then time out)."""
+            self._unpacker.feed(data)
+            try:
+                for message in self._unpacker:
+                    if len(message) != 4 or message[0] != RESPONSE:
+                        raise ValueError(f"not a msgpack-rpc response: {message!r:.200}")
+                    self.on_response(message[1], message[2], message[3])
+            except Exception as e:
+                self._stream.sink = _ignore
+                host, port = self._transport._address.unpack()
+                log.warning("simulator at %s:%s: %s; no longer reading it", host, port, e)
 
     class Transport(tcp.ClientTransport):
         async def connect(self):
-            await Socket(IOStream(self._address.socket()), self).connect()
+            await Socket(Stream(self._address.socket()), self).connect()
 
         async def on_close(self, sock):
             if self._closed:
@@ -138,8 +204,12 @@ def _session_types():
             self._session.on_connect_failed(_Lost("the simulator closed the connection"))
 
     class Session(msgpackrpc.Client):
+        """The library's session, driven in batches: a request is packed into an outbox when it
+        is sent, the outbox goes out in one write when something is awaited, and the loop runs
+        once for all the answers awaited together (no task, timer or loop restart per call)."""
+
         def __init__(self, host: str, port: int) -> None:
-            # timeout=0: no library timer; every wait has its own deadline (wait()).
+            # timeout=0: no library timer; every wait has its own deadline (settle()).
             super().__init__(
                 msgpackrpc.Address(host, port),
                 timeout=0,
@@ -148,29 +218,87 @@ def _session_types():
                 pack_encoding="utf-8",
                 unpack_encoding="utf-8",
             )
+            self._outbox: list[bytes] = []
+            self._awaited: Sequence[Any] | None = None
 
         def send_request(self, method, args):
-            future = super().send_request(method, args)
-            future.task.add_done_callback(_retrieved)  # a send on a lost connection: reported
+            sockets = self._transport._sockets
+            if not sockets:  # still connecting: the library queues it until connected
+                future = super().send_request(method, args)
+                future.task.add_done_callback(_retrieved)  # a send on a lost connection: reported
+                return future
+            msgid = next(self._generator)
+            self._outbox.append(sockets[0]._packer.pack([REQUEST, msgid, method, args]))
+            future = Future(self._loop, self._timeout)
+            self._request_table[msgid] = future
             return future
 
-        def call(self, method, *args):
-            return self.wait(self.call_async(method, *args), self.deadline_s)
+        def flush(self) -> None:
+            """Write the requests sent since the last flush, in one write: straight to the
+            socket when the stream has nothing queued, what the socket does not take (or an
+            error) through the stream. A stream already closed is left to its close callback
+            (it fails every pending call)."""
+            if not self._outbox:
+                return
+            data, self._outbox = b"".join(self._outbox), []
+            sockets = self._transport._sockets if self._transport is not None else ()
+            if not sockets or sockets[0]._stream.closed():
+                return
+            stream = sockets[0]._stream
+            if not stream.writing():
+                try:
+                    data = data[stream.socket.send(data) :]
+                except OSError:  # would block, or an error the stream meets again and reports
+                    pass
+            if data:
+                try:
+                    stream.write(data)
+                except StreamClosedError:
+                    pass
 
-        def wait(self, future, seconds: float):
-            """The future's result, or ``_Expired`` after ``seconds``."""
+        def close(self) -> None:
+            self._outbox = []
+            super().close()
+
+        def call(self, method, *args):
+            future = self.call_async(method, *args)
+            self.settle((future,), self.deadline_s)
+            return future.get()
+
+        def settle(self, futures: Sequence[Any], seconds: float) -> None:
+            """Run the loop until ``futures`` are answered, or one of them failed after all
+            those before it were answered, for at most ``seconds``; those still unanswered
+            then fail with ``_Expired``."""
+            self.flush()
+            if _settled(futures):
+                return
             ioloop = self._loop._ioloop
 
             def expire():
-                if not future._set_flag:
-                    future.set_error(_Expired())
-                    self._loop.stop()
+                for future in futures:
+                    if not future._set_flag:
+                        future.set_error(_Expired())
+                self._loop.stop()
 
             handle = ioloop.call_later(seconds, expire)
+            self._awaited = futures
             try:
-                return future.get()
+                while not _settled(futures):
+                    self._loop.start()
             finally:
+                self._awaited = None
                 ioloop.remove_timeout(handle)
+
+        def on_response(self, msgid, error, result):
+            future = self._request_table.pop(msgid, None)
+            if future is None:
+                return
+            if error is not None:
+                future.set_error(error)
+            else:
+                future.set_result(result)
+            if self._awaited is None or _settled(self._awaited):
+                self._loop.stop()
 
     return Session
 
@@ -250,10 +378,14 @@ class AirSimClient:
         return self._guard(method, what, lambda: fn(*plain(list(args))))
 
     def _guard(self, method: str, what: str, thunk) -> Any:
-        from msgpackrpc.error import RPCError
-
         if self._api is None or self._api.client._transport is None:
             raise AirSimError(f"simulator at {self.address}: the connection is closed ({what})")
+        return self._answer(method, what, thunk)
+
+    def _answer(self, method: str, what: str, thunk) -> Any:
+        """``thunk()``, its faults as :class:`AirSimError` naming ``method`` and ``what``."""
+        from msgpackrpc.error import RPCError
+
         try:
             return thunk()
         except RPCError as e:
@@ -274,21 +406,36 @@ class AirSimClient:
             ) from None
 
     def send(self, method: str, *args: Any):
-        """Send ``method`` without waiting for its answer (a future for :meth:`gather`)."""
+        """Send ``method`` without waiting for its answer (a future for :meth:`gather`; it goes
+        out with the next wait)."""
         if self._api is None or self._api.client._transport is None:
             raise AirSimError(f"simulator at {self.address}: the connection is closed ({method})")
         return self._api.client.call_async(method, *plain(list(args)))
 
-    def gather(self, futures: Sequence[Any], method: str, what: str) -> list[Any]:
-        """The answers to futures sent together, within one ``timeout_s`` deadline."""
-        deadline = time.monotonic() + self.timeout_s
+    def gather(
+        self, futures: Sequence[Any], method: str | Sequence[str], what: str
+    ) -> list[Any]:
+        """The answers to futures sent together, within one ``timeout_s`` deadline: the loop
+        runs once for all of them; the first that failed, in order, is the error.
+
+        Args:
+            futures: from :meth:`send`.
+            method: the method each future called (one name for all, or one per future), for
+                the errors.
+            what: what was being waited for, for the errors.
+        """
+        if not futures:
+            return []
+        methods = [method] * len(futures) if isinstance(method, str) else list(method)
         session = self._api.client
-        return [
-            self._guard(
-                method, what, lambda f=f: session.wait(f, max(0.0, deadline - time.monotonic()))
-            )
-            for f in futures
-        ]
+
+        def first() -> Any:
+            session.settle(futures, self.timeout_s)
+            return futures[0].get()
+
+        answers = [self._guard(methods[0], what, first)]
+        pairs = zip(futures[1:], methods[1:], strict=True)
+        return answers + [self._answer(m, what, f.get) for f, m in pairs]
 
     # What a lock-step loop uses ----------------------------------------------------------
 
@@ -360,19 +507,30 @@ class AirSimClient:
 
     def read(self, names: Sequence[str], what: str) -> tuple[list[VehicleState], list[bool]]:
         """Every vehicle's state and collision flag, sent together; the collision flag clears
-        on read (read it once per step)."""
+        on read (read it once per step). The fields are read from the answers' maps, through
+        the library's types only where an answer lacks one."""
         lib = self._lib
         states = [self.send("getMultirotorState", n) for n in names]
         hits = [self.send("simGetCollisionInfo", n) for n in names]
-        raw_states = self.gather(states, "getMultirotorState", what)
-        raw_hits = self.gather(hits, "simGetCollisionInfo", what)
+        methods = ["getMultirotorState"] * len(names) + ["simGetCollisionInfo"] * len(names)
+        answers = self.gather(states + hits, methods, what)
+        raw_states, raw_hits = answers[: len(names)], answers[len(names) :]
         out = []
         for raw in raw_states:
-            s = lib.MultirotorState.from_msgpack(raw)
-            k = s.kinematics_estimated
-            out.append(VehicleState(_triple(k.position), _triple(k.linear_velocity),
-                                    int(s.timestamp)))  # fmt: skip
-        return out, [bool(lib.CollisionInfo.from_msgpack(h).has_collided) for h in raw_hits]
+            state = _fields(raw)
+            if state is None:  # not the usual map: the library's reading (its defaults)
+                s = lib.MultirotorState.from_msgpack(raw)
+                k = s.kinematics_estimated
+                state = VehicleState(_triple(k.position), _triple(k.linear_velocity),
+                                     int(s.timestamp))  # fmt: skip
+            out.append(state)
+        hits = []
+        for raw in raw_hits:
+            if isinstance(raw, dict) and "has_collided" in raw:
+                hits.append(bool(raw["has_collided"]))
+            else:
+                hits.append(bool(lib.CollisionInfo.from_msgpack(raw).has_collided))
+        return out, hits
 
     def close(self) -> None:
         """Close the connection (the simulation stays as it is)."""

@@ -37,9 +37,9 @@ from torch import Tensor
 
 from rlplat.envs.airsim.client import AirSimClient, AirSimError, parse_endpoint
 from rlplat.envs.airsim.frames import (
+    enu_rows_to_ned,
     enu_to_ned,
-    local_to_world,
-    ned_to_enu,
+    ned_rows_to_enu,
     spawn_offsets,
     world_to_local,
 )
@@ -172,7 +172,7 @@ class AirSimDynamics(DroneDynamics):
         self._check_shape("command", command, (self.num_envs, self.num_drones, 3))
         bound = self.max_speed.unsqueeze(-1)
         command = torch.clamp(command.detach().to(self.velocity), -bound, bound)
-        ned = enu_to_ned(command[0].double().cpu()).tolist()
+        ned = enu_rows_to_ned(command[0].tolist())
         for name, velocity in zip(self.names, ned, strict=True):
             self.client.move_velocity(name, velocity, period + self.move_margin_s)
         self.client.continue_for(period / self.clock_speed, f"a step of {period:g} s")
@@ -201,12 +201,12 @@ class AirSimDynamics(DroneDynamics):
         """Read every drone's state into ``position``/``velocity`` (ENU world) and their
         collision flags into ``collided``; returns the simulator's timestamp (ns)."""
         states, hits = self.client.read(self.names, what)
-        spawn = torch.tensor([self.spawn[n] for n in self.names], dtype=torch.float64)
-        local = torch.tensor([s.position for s in states], dtype=torch.float64)
-        velocity = torch.tensor([s.velocity for s in states], dtype=torch.float64)
-        position = ned_to_enu(local_to_world(local, spawn))
-        self.position = position.to(self.position).unsqueeze(0)
-        self.velocity = ned_to_enu(velocity).to(self.velocity).unsqueeze(0)
+        # Python floats (float64) through the frames, then one float32 tensor each.
+        spawn = [self.spawn[n] for n in self.names]
+        position = ned_rows_to_enu([s.position for s in states], spawn)
+        velocity = ned_rows_to_enu([s.velocity for s in states])
+        self.position = torch.tensor([position], dtype=self.position.dtype, device=self.device)
+        self.velocity = torch.tensor([velocity], dtype=self.velocity.dtype, device=self.device)
         self.collided = torch.tensor([hits], dtype=torch.bool, device=self.device)
         if any(hits):
             log.info(

@@ -14,6 +14,10 @@ Every function works on the last axis (size 3) and keeps the kind of its input: 
 gives a Tensor (same dtype and device), a numpy array an array, and a flat sequence of three
 numbers a tuple of three Python floats (what goes on the wire). Nested sequences give a float64
 array.
+
+``enu_rows_to_ned`` and ``ned_rows_to_enu`` convert a few rows of Python floats (one per vehicle)
+with the arithmetic of the float64 tensor path, -0.0 included, without building tensors: what a
+lock-step loop does every step.
 """
 
 from __future__ import annotations
@@ -31,7 +35,15 @@ if TYPE_CHECKING:  # torch is not imported here: a tensor exists only if torch w
 
     Vector = Tensor | np.ndarray | Sequence[Any]
 
-__all__ = ["enu_to_ned", "local_to_world", "ned_to_enu", "spawn_offsets", "world_to_local"]
+__all__ = [
+    "enu_rows_to_ned",
+    "enu_to_ned",
+    "local_to_world",
+    "ned_rows_to_enu",
+    "ned_to_enu",
+    "spawn_offsets",
+    "world_to_local",
+]
 
 
 def _is_tensor(x: Any) -> bool:
@@ -73,6 +85,30 @@ def enu_to_ned(x: Vector) -> Vector:
 def ned_to_enu(x: Vector) -> Vector:
     """NED (x north, y east, z down) -> ENU (x east, y north, z up): (x, y, z) -> (y, x, -z)."""
     return _swap(x)
+
+
+def enu_rows_to_ned(rows: Sequence[Sequence[float]]) -> list[tuple[float, float, float]]:
+    """ENU rows (x, y, z) of Python floats -> NED rows (y, x, -z), as ``enu_to_ned`` of their
+    float64 tensor gives them (a zero z becomes -0.0)."""
+    return [(y, x, -z) for x, y, z in rows]
+
+
+def ned_rows_to_enu(
+    rows: Sequence[Sequence[float]], spawn_ned: Sequence[Sequence[float]] | None = None
+) -> list[tuple[float, float, float]]:
+    """NED rows (x, y, z) of Python floats -> ENU rows, as the float64 tensor path gives them.
+
+    Args:
+        rows: (x, y, z) per vehicle, NED; with ``spawn_ned``, positions relative to each
+            vehicle's spawn point (``ned_to_enu(local_to_world(rows, spawn_ned))``), without,
+            velocities (``ned_to_enu(rows)``).
+        spawn_ned: (x, y, z) NED metres of each row's spawn point, or None.
+    """
+    if spawn_ned is None:
+        return [(y, x, -z) for x, y, z in rows]
+    return [
+        (y + sy, x + sx, -(z + sz)) for (x, y, z), (sx, sy, sz) in zip(rows, spawn_ned, strict=True)
+    ]
 
 
 def _combine(p: Any, spawn: Any, sign: float) -> Any:
