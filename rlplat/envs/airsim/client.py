@@ -24,6 +24,7 @@ under one deadline: a lock step is two writes and two waits, whatever the number
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import math
@@ -246,15 +247,12 @@ def _session_types():
                 return
             stream = sockets[0]._stream
             if not stream.writing():
-                try:
+                # would block, or an error the stream meets again and reports
+                with contextlib.suppress(OSError):
                     data = data[stream.socket.send(data) :]
-                except OSError:  # would block, or an error the stream meets again and reports
-                    pass
             if data:
-                try:
+                with contextlib.suppress(StreamClosedError):
                     stream.write(data)
-                except StreamClosedError:
-                    pass
 
         def close(self) -> None:
             self._outbox = []
@@ -412,9 +410,7 @@ class AirSimClient:
             raise AirSimError(f"simulator at {self.address}: the connection is closed ({method})")
         return self._api.client.call_async(method, *plain(list(args)))
 
-    def gather(
-        self, futures: Sequence[Any], method: str | Sequence[str], what: str
-    ) -> list[Any]:
+    def gather(self, futures: Sequence[Any], method: str | Sequence[str], what: str) -> list[Any]:
         """The answers to futures sent together, within one ``timeout_s`` deadline: the loop
         runs once for all of them; the first that failed, in order, is the error.
 
