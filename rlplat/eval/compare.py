@@ -98,12 +98,13 @@ def table_rows(summaries: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return rows
 
 
+def num(v: float | None, digits: int = 3) -> str:
+    """A table cell: ``v`` with ``digits`` decimals, or a dash where there is no value."""
+    return "–" if v is None else f"{v:.{digits}f}"
+
+
 def markdown_table(rows: list[dict[str, Any]]) -> str:
     """The comparison as a Markdown table."""
-
-    def num(v, digits=3):
-        return "–" if v is None else f"{v:.{digits}f}"
-
     lines = [
         "| policy | scenarios | capture rate [95 % CI] | mean / median time to capture [s] "
         "| mean return | visible fraction | mean closest distance [m] | route fraction "

@@ -21,7 +21,7 @@ import numpy as np
 
 from rlplat.cli import exit_on_error
 from rlplat.errors import ConfigError
-from rlplat.eval.compare import _learned
+from rlplat.eval.compare import _learned, num
 from rlplat.eval.metrics import wilson_interval
 from rlplat.scenarios import SPLITS
 
@@ -76,9 +76,7 @@ def _pool(label: str, runs: int, rows: list[dict[str, str]]) -> dict[str, Any]:
 
 
 def markdown(rows: list[dict[str, Any]]) -> str:
-    def num(v, digits=3):
-        return "–" if v is None else f"{v:.{digits}f}"
-
+    """The pooled comparison as a Markdown table."""
     lines = [
         "| policy | runs | episodes | capture rate [95 % CI] | mean / median time to capture "
         "[s] | route-flying defenders: capture rate / ceiling |",
