@@ -166,6 +166,10 @@ def test_the_written_files_compute_the_torch_actions(run, exported, scenarios, t
     for got in (c_policy(obs.numpy()), onnx_policy(obs.numpy())):
         assert got.shape == expected.shape and np.abs(got - expected).max() <= 1e-5
     assert np.abs(expected).max() <= 1.0
+    # A NaN observation gives NaN actions in C as in torch, not a finite made-up command.
+    bad = obs[:4].clone()
+    bad[:, 0] = float("nan")
+    assert np.isnan(torch_actions(state, bad)).all() and np.isnan(c_policy(bad.numpy())).all()
 
 
 @pytest.mark.parametrize("policy", ["onnx", "c"])

@@ -273,7 +273,8 @@ def c_sources(actor: DeterministicActor, describe: Sequence[str] = ()) -> tuple[
         '#ifdef __cplusplus\nextern "C" {\n#endif\n\n'
         "/* obs: the observation exactly as the env emits it (SI units, the order above).\n"
         " * action: in [-1, 1]; times the drone's maximum speed per axis, the velocity\n"
-        " * command. */\n"
+        " * command. A NaN observation gives NaN actions (an infinite one may), as the\n"
+        " * torch actor does: check them before flying the command. */\n"
         f"{C_API}\n\n"
         "#ifdef __cplusplus\n}\n#endif\n\n#endif /* RLPLAT_POLICY_H */\n"
     )
@@ -313,7 +314,8 @@ def c_sources(actor: DeterministicActor, describe: Sequence[str] = ()) -> tuple[
             ]
             n = width
         elif kind == "ReLU":
-            body.append(f"    for (j = 0; j < {n}; ++j) {x}[j] = {x}[j] > 0.0f ? {x}[j] : 0.0f;")
+            # written so that NaN passes through, as torch's relu lets it
+            body.append(f"    for (j = 0; j < {n}; ++j) {x}[j] = {x}[j] < 0.0f ? 0.0f : {x}[j];")
         elif kind == "Tanh":
             body.append(f"    for (j = 0; j < {n}; ++j) {x}[j] = tanhf({x}[j]);")
         else:  # ELU
