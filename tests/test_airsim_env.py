@@ -128,7 +128,7 @@ def test_calls_sent_together_go_out_in_one_write_and_the_first_failure_in_order_
     client.close()
 
 
-def test_a_simulator_that_sends_a_non_response_is_not_read_further_and_times_out(caplog):
+def test_notifications_are_skipped_and_a_non_message_ends_reading(caplog):
     import threading
 
     import msgpack
@@ -136,29 +136,50 @@ def test_a_simulator_that_sends_a_non_response_is_not_read_further_and_times_out
     listener = socket.create_server(("127.0.0.1", 0))
     port = listener.getsockname()[1]
 
-    def serve() -> None:  # answers the first call (the ping), then sends a notification
-        answered = 0
-        while answered < 2:  # the client's probe connects and closes first
-            conn, _ = listener.accept()
-            unpacker = msgpack.Unpacker(raw=False)
-            while answered < 2 and (data := conn.recv(65536)):
-                unpacker.feed(data)
-                for _, msgid, _, _ in unpacker:
-                    reply = [1, msgid, None, True] if answered == 0 else [2, "surprise", []]
-                    conn.sendall(msgpack.packb(reply))
-                    answered += 1
+    def serve() -> None:  # one connection; msgpack-rpc allows the server to notify at will
+        conn, _ = listener.accept()
+        unpacker, answered = msgpack.Unpacker(raw=False), 0
+        while answered < 3 and (data := conn.recv(65536)):
+            unpacker.feed(data)
+            for _, msgid, _, _ in unpacker:
+                replies = [
+                    [[1, msgid, None, True]],  # the ping
+                    [[2, "surprise", []], [1, msgid, None, ["Attacker"]]],  # listVehicles
+                    [[7, "not msgpack-rpc"]],  # anything else: reading ends
+                ][answered]
+                conn.sendall(b"".join(msgpack.packb(r) for r in replies))
+                answered += 1
         time.sleep(1.0)
         conn.close()
 
     thread = threading.Thread(target=serve, daemon=True)
     thread.start()
     client = AirSimClient(f"127.0.0.1:{port}", connect_timeout_s=2.0, timeout_s=0.5)
+    assert client.vehicles() == ["Attacker"]
     with pytest.raises(AirSimError, match=r"stopped answering: no answer to listVehicles"):
         client.vehicles()
     assert "not a msgpack-rpc response" in caplog.text
     client.close()
     thread.join()
     listener.close()
+
+
+def test_a_move_the_simulator_refuses_stops_the_step(server):
+    client = AirSimClient(server.address, connect_timeout_s=2.0, timeout_s=1.0)
+    client.pause(True)
+    client.move_velocity("Attacker", (1.0, 0.0, 0.0), 0.2)  # no API control taken: refused
+    client.continue_for(0.1, "the test")
+    with pytest.raises(AirSimError) as info:
+        client.read(["Attacker"], "the test")
+    message = str(info.value)
+    assert message.startswith(f"simulator at {server.address} refused moveByVelocity for Attacker")
+    assert "requestApiControl()" in message and "\n" not in message
+    client.take_control("Attacker")
+    client.move_velocity("Attacker", (1.0, 0.0, 0.0), 0.2)
+    client.continue_for(0.1, "the test")
+    (state,), _ = client.read(["Attacker"], "the test")  # a later move that flies: no error
+    assert state.velocity[0] > 0.0
+    client.close()
 
 
 # The env on one simulator ------------------------------------------------------------------

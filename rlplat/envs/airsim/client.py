@@ -28,7 +28,6 @@ import contextlib
 import json
 import logging
 import math
-import socket
 from collections.abc import Sequence
 from dataclasses import dataclass
 from types import SimpleNamespace
@@ -129,6 +128,16 @@ class _Expired(Exception):
     """No answer before the deadline."""
 
 
+def _no_connection(reason: Any) -> bool:
+    """The connection failed or was lost (not a timeout, not an error the simulator answered):
+    the library reports a failed connect as a string naming the connection."""
+    from msgpackrpc.error import TransportError
+
+    if isinstance(reason, (_Lost, TransportError, OSError)):
+        return True
+    return isinstance(reason, str) and "connection" in reason.lower()
+
+
 def _retrieved(task) -> None:
     """Mark a send task's exception as seen (the call it belongs to reports the loss)."""
     if not task.cancelled():
@@ -155,7 +164,7 @@ def _session_types():
     handed to the session as they are read."""
     import msgpackrpc
     from msgpackrpc.future import Future
-    from msgpackrpc.message import REQUEST, RESPONSE
+    from msgpackrpc.message import NOTIFY, REQUEST, RESPONSE
     from msgpackrpc.transport import tcp
     from tornado.iostream import IOStream, StreamClosedError
 
@@ -180,11 +189,14 @@ def _session_types():
             await self._transport.on_connect(self)
 
         def on_data(self, data: bytes) -> None:
-            """Answers to the session as they arrive. Anything else ends reading, as it ends
-            the library's read loop (the calls then time out)."""
+            """Answers to the session as they arrive; notifications are skipped (nothing awaits
+            them). Anything else ends reading, as it ends the library's read loop (the calls
+            then time out)."""
             self._unpacker.feed(data)
             try:
                 for message in self._unpacker:
+                    if len(message) == 3 and message[0] == NOTIFY:
+                        continue
                     if len(message) != 4 or message[0] != RESPONSE:
                         raise ValueError(f"not a msgpack-rpc response: {message!r:.200}")
                     self.on_response(message[1], message[2], message[3])
@@ -334,7 +346,7 @@ class AirSimClient:
         self.address = f"{self.host}:{self.port}"
         self.connect_timeout_s, self.timeout_s = float(connect_timeout_s), float(timeout_s)
         self._api, self._field = None, "dynamics.timeout_s"
-        self._probe()
+        self._moves: dict[str, Any] = {}  # the last move sent to each vehicle
         try:
             import cosysairsim
         except ImportError:
@@ -354,19 +366,6 @@ class AirSimClient:
             raise
         api.client.deadline_s, self._field = self.timeout_s, "dynamics.timeout_s"
         log.info("connected to the simulator at %s", self.address)
-
-    def _probe(self) -> None:
-        """A plain TCP connection first: a refused or unroutable address fails within
-        ``connect_timeout_s`` with the hint of how to start a simulator."""
-        try:
-            with socket.create_connection((self.host, self.port), self.connect_timeout_s):
-                pass
-        except OSError as e:
-            reason = "timed out" if isinstance(e, TimeoutError) else (e.strerror or str(e))
-            raise AirSimError(
-                f"no simulator at {self.address} ({reason} within "
-                f"{self.connect_timeout_s:g} s); {START_HINT}"
-            ) from None
 
     # Calls -----------------------------------------------------------------------------
 
@@ -388,13 +387,21 @@ class AirSimClient:
             return thunk()
         except RPCError as e:
             reason = e.args[0] if e.args else e
+            lost = _no_connection(reason)
+            connecting = self._field == "dynamics.connect_timeout_s"
+            if connecting and lost:  # the first call: nothing listens there
+                raise AirSimError(
+                    f"no simulator at {self.address} (connection refused or unreachable); "
+                    f"{START_HINT}"
+                ) from None
             if isinstance(reason, _Expired):
                 wait = self._api.client.deadline_s
+                hint = f"; {START_HINT}" if connecting else ""
                 raise AirSimError(
                     f"simulator at {self.address} stopped answering: no answer to {method} "
-                    f"({what}) within {wait:g} s ({self._field})"
+                    f"({what}) within {wait:g} s ({self._field}){hint}"
                 ) from None
-            if isinstance(reason, _Lost) or "connection" in str(reason).lower():
+            if lost:
                 raise AirSimError(
                     f"lost the connection to the simulator at {self.address} while waiting for "
                     f"{method} ({what}); restart it and resume the run"
@@ -476,7 +483,9 @@ class AirSimClient:
     def take_control(self, name: str) -> None:
         """API control on and armed (again after any simulator ``reset``)."""
         self.call("enableApiControl", f"control of {name}", self._api.enableApiControl, True, name)
-        self.call("armDisarm", f"arming {name}", self._api.armDisarm, True, name)
+        armed = self.call("armDisarm", f"arming {name}", self._api.armDisarm, True, name)
+        if armed is False:  # AirSim answers false when the vehicle would not arm
+            raise AirSimError(f"simulator at {self.address}: {name} did not arm (armDisarm)")
 
     def set_position(self, name: str, position_ned: Sequence[float]) -> None:
         """Place ``name`` at ``position_ned`` (its spawn-relative NED frame), level, with
@@ -487,12 +496,26 @@ class AirSimClient:
                   pose, True, name)  # fmt: skip
 
     def move_velocity(self, name: str, velocity_ned: Sequence[float], duration_s: float):
-        """Command ``name``'s velocity (NED m/s) for ``duration_s`` sim seconds; not awaited."""
+        """Command ``name``'s velocity (NED m/s) for ``duration_s`` sim seconds; not awaited
+        (a move answers when it ends or the next one cancels it): :meth:`check_moves` reports
+        one the simulator refused."""
         vx, vy, vz = plain(list(velocity_ned))
-        return self.send(
+        self._moves[name] = self.send(
             "moveByVelocity", vx, vy, vz, float(duration_s),
             self._lib.DrivetrainType.MaxDegreeOfFreedom, self._lib.YawMode(), name,
         )  # fmt: skip
+        return self._moves[name]
+
+    def check_moves(self) -> None:
+        """Raise :class:`AirSimError` if the simulator answered a move with an error (an
+        unknown vehicle, one not under API control, wrong arguments): the drone would not fly
+        its commands. A move cancelled by the next one is not an error."""
+        for name, future in self._moves.items():
+            error = future.error if future._set_flag else None
+            if error is not None and "cancel" not in str(error).lower():
+                raise AirSimError(
+                    f"simulator at {self.address} refused moveByVelocity for {name}: {error}"
+                )
 
     def continue_for(self, seconds: float, what: str) -> None:
         """Run the paused simulation for ``seconds`` (of the simulator's wall clock) and wait
@@ -510,6 +533,7 @@ class AirSimClient:
         hits = [self.send("simGetCollisionInfo", n) for n in names]
         methods = ["getMultirotorState"] * len(names) + ["simGetCollisionInfo"] * len(names)
         answers = self.gather(states + hits, methods, what)
+        self.check_moves()  # a refused move has been answered by now: it came first
         raw_states, raw_hits = answers[: len(names)], answers[len(names) :]
         out = []
         for raw in raw_states:
