@@ -1,7 +1,7 @@
 """``python -m rlplat.airsim <verb> [...]``: the AirSim tools.
 
 Verbs:
-    settings out=PATH [overrides]   write settings.json for the team of the train config
+    settings out=PATH [port=P] [overrides]   write settings.json for the team of the train config
                                     (e.g. ``scenario=pursuit_2v1 dynamics=airsim``)
     serve [--settings FILE] [--port P] [--clock-speed K] [--realtime] [overrides]
                                     serve the loopback AirSim-protocol test server (for FILE,

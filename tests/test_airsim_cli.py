@@ -60,6 +60,18 @@ def test_settings_command_refuses_an_unknown_override_in_one_line(tmp_path):
     assert not out.exists()
 
 
+def test_settings_for_a_second_simulator_carry_its_port_and_a_bad_port_is_one_line(tmp_path):
+    out = tmp_path / "settings.json"
+    run = airsim_cli("settings", f"out={out}", "port=41452")
+    assert run.returncode == 0, run.stderr
+    assert json.loads(out.read_text())["ApiServerPort"] == 41452
+    assert "ApiServerPort 41452" in run.stdout
+    bad = airsim_cli("settings", f"out={tmp_path / 'other.json'}", "port=99999")
+    lines = bad.stderr.strip().splitlines()
+    assert bad.returncode == 2 and len(lines) == 1 and "port" in lines[0] and "99999" in lines[0]
+    assert not (tmp_path / "other.json").exists()
+
+
 def test_team_settings_read_names_spawn_and_clock_speed_from_the_config():
     cfg = compose_train(
         [

@@ -24,6 +24,7 @@ from hydra.errors import HydraException
 from omegaconf import DictConfig, OmegaConf
 
 from rlplat.envs.airsim import make_settings, ned_to_enu, vehicle_names, write_settings
+from rlplat.envs.airsim.client import parse_endpoint
 from rlplat.errors import ConfigError
 from rlplat.experiment.config import CONF_DIR, compose_config
 from rlplat.io import atomic_write_text
@@ -40,8 +41,9 @@ def compose_train(overrides: Sequence[str]) -> DictConfig:
         raise ConfigError(f"overrides {list(overrides)}: {message}") from None
 
 
-def team_settings(cfg: DictConfig) -> dict[str, Any]:
-    """The settings.json dict for the team of ``cfg`` (see the module docstring)."""
+def team_settings(cfg: DictConfig, api_server_port: int | None = None) -> dict[str, Any]:
+    """The settings.json dict for the team of ``cfg`` (see the module docstring), with
+    ``ApiServerPort`` when ``api_server_port`` is given."""
     scenario, dynamics = cfg.scenario, cfg.dynamics
     for field in ("attackers", "defenders"):
         count = scenario.get(field)
@@ -72,7 +74,10 @@ def team_settings(cfg: DictConfig) -> dict[str, Any]:
         if not _triple(point):
             raise ConfigError(f"dynamics.spawn.{name} must be [x, y, z] in metres, got {point!r}")
         spawn_enu[name] = ned_to_enu(tuple(float(v) for v in point))
-    return make_settings(names, spawn_enu, clock_speed=dynamics.get("clock_speed", 1.0))
+    settings = make_settings(names, spawn_enu, clock_speed=dynamics.get("clock_speed", 1.0))
+    if api_server_port is not None:
+        settings["ApiServerPort"] = int(api_server_port)
+    return settings
 
 
 def _triple(point: Any) -> bool:
@@ -84,15 +89,22 @@ def _triple(point: Any) -> bool:
 
 
 def settings_command(args: Sequence[str]) -> str:
-    """``settings out=PATH [overrides]``: write the team's settings.json; returns a summary."""
+    """``settings out=PATH [port=P] [overrides]``: write the team's settings.json (with
+    ``ApiServerPort`` P when given: one file per simulator of ``dynamics.endpoints``); returns
+    a summary."""
     outs = [a for a in args if a.startswith("out=")]
-    overrides = [a for a in args if not a.startswith("out=")]
+    ports = [a for a in args if a.startswith("port=")]
+    overrides = [a for a in args if not a.startswith(("out=", "port="))]
     if len(outs) != 1 or not outs[0][4:]:
         raise ConfigError(f"settings needs exactly one out=PATH, got {outs or 'none'}")
-    settings = team_settings(compose_train(overrides))
+    if len(ports) > 1:
+        raise ConfigError(f"settings takes at most one port=P, got {ports}")
+    port = parse_endpoint(f"127.0.0.1:{ports[0][5:]}", "port")[1] if ports else None
+    settings = team_settings(compose_train(overrides), api_server_port=port)
     path = write_settings(Path(outs[0][4:]), settings)
     vehicles = ", ".join(settings["Vehicles"])
-    return f"settings.json for {vehicles} (ClockSpeed {settings['ClockSpeed']:g}) -> {path}"
+    at = f", ApiServerPort {port}" if port is not None else ""
+    return f"settings.json for {vehicles} (ClockSpeed {settings['ClockSpeed']:g}{at}) -> {path}"
 
 
 def serve_command(args: Sequence[str]) -> int:

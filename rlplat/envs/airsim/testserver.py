@@ -670,7 +670,8 @@ def main(argv: Sequence[str] | None = None, settings: Mapping[str, Any] | None =
 
     Args:
         argv: ``--settings FILE`` (required unless ``settings`` is given), ``--host``,
-            ``--port`` (default 41451; 0 picks a free one), ``--clock-speed``, ``--realtime`` and
+            ``--port`` (default: the settings' ``ApiServerPort``, else 41451; 0 picks a free
+            one), ``--clock-speed``, ``--realtime`` and
             the physics constants (``--tau-xy`` ...).
         settings: the settings dict to serve when ``--settings`` is not given.
     """
@@ -680,7 +681,7 @@ def main(argv: Sequence[str] | None = None, settings: Mapping[str, Any] | None =
     )
     parser.add_argument("--settings", required=settings is None, help="settings.json to serve")
     parser.add_argument("--host", default="127.0.0.1")
-    parser.add_argument("--port", type=int, default=DEFAULT_PORT)
+    parser.add_argument("--port", type=int, default=None, help="default: ApiServerPort, 41451")
     parser.add_argument("--clock-speed", type=float, default=None, help="default: ClockSpeed")
     parser.add_argument("--realtime", action="store_true", help="continues take wall time")
     for name, default in (
@@ -704,10 +705,14 @@ def main(argv: Sequence[str] | None = None, settings: Mapping[str, Any] | None =
             settings = json.loads(path.read_text())
         except (OSError, ValueError) as err:
             raise ConfigError(f"--settings {path}: cannot read a settings.json: {err}") from None
+    port = args.port
+    if port is None:
+        port = settings.get("ApiServerPort", DEFAULT_PORT) if isinstance(settings, dict) else None
+        port = port if isinstance(port, int) else DEFAULT_PORT
     server = TestServer(
         settings,
         args.host,
-        args.port,
+        port,
         tau_xy=args.tau_xy,
         tau_z=args.tau_z,
         a_xy_max=args.a_xy_max,
