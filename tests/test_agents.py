@@ -251,3 +251,34 @@ def test_fused_soft_update_is_torchrls_soft_update():
         for key in b.keys(True, True):
             torch.testing.assert_close(a[key], b[key], rtol=1e-6, atol=1e-6)
         assert not torch.allclose(a[key], online[key])  # a soft step, not a copy
+
+
+def test_the_anchor_adds_its_pull_on_the_mean_action_to_the_actor_loss():
+    from torchrl.data import Bounded
+
+    from rlplat.agents.sac import AnchoredSACLoss, NetSpec, SACAgent
+
+    net = NetSpec(9, 3, (16, 16), (16, 16), "relu", (1.0,) * 9)
+    spec = Bounded(-1.0, 1.0, shape=(3,))
+    agents = []
+    for weight in (0.0, 2.0):
+        torch.manual_seed(0)
+        agents.append(SACAgent(net, spec, gamma=0.99, tau=0.1, actor_lr=1e-3, critic_lr=1e-3,
+                               alpha_lr=1e-3, anchor_weight=weight))  # fmt: skip
+    plain, anchored = agents
+    assert not isinstance(plain.loss, AnchoredSACLoss)  # 0: TorchRL's SACLoss as it is
+    batch = TensorDict(observation=torch.randn(32, 9), batch_size=[32])
+    losses = []
+    for agent in agents:
+        torch.manual_seed(1)  # the same reparameterised draw
+        losses.append(agent.loss.actor_loss(batch.clone())[0])
+    loss = anchored.loss
+    with loss.actor_network_params.to_module(loss.actor_network):
+        loc = loss.actor_network.get_dist(batch.clone()).loc
+    assert loc.abs().max() > 0.01  # a mean the anchor pulls on
+    pull = 2.0 * loc.pow(2).sum(-1).mean()
+    torch.testing.assert_close(losses[1], losses[0] + pull, rtol=1e-5, atol=1e-6)
+    # Its gradient pulls the actor's mean towards zero, the guidance law under a guided action.
+    params = [p for p in loss.actor_network_params.values(True, True) if p.requires_grad]
+    grads = torch.autograd.grad(pull, params)
+    assert any(g.abs().sum() > 0 for g in grads)

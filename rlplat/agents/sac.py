@@ -172,6 +172,23 @@ def _as_tuple(key: str | tuple[str, ...]) -> tuple[str, ...]:
     return key if isinstance(key, tuple) else (key,)
 
 
+class AnchoredSACLoss(SACLoss):
+    """``SACLoss`` whose actor loss also pays ``anchor_weight * |loc|^2`` per state, ``loc``
+    being the actor's pre-tanh mean: the deterministic action is held at zero, which under a
+    guided action is the guidance law, unless the critics' gradient outweighs the pull (a
+    behaviour-regularised actor, as in TD3+BC, with the law as the behaviour)."""
+
+    def __init__(self, *args: Any, anchor_weight: float, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.anchor_weight = float(anchor_weight)
+
+    def actor_loss(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
+        loss, metadata = super().actor_loss(tensordict)
+        with self.actor_network_params.to_module(self.actor_network, preserve_module_state=False):
+            loc = self.actor_network.get_dist(tensordict).loc
+        return loss + self.anchor_weight * loc.pow(2).sum(-1).mean(), metadata
+
+
 class SACAgent:
     """SAC with automatic entropy tuning: TorchRL ``SACLoss`` (two Q nets), ``SoftUpdate``.
 
@@ -207,6 +224,7 @@ class SACAgent:
         alpha_init: float = 1.0,
         target_entropy: str | float = "auto",
         loss_function: str = "l2",
+        anchor_weight: float = 0.0,
         compile: bool = False,
         group: str | None = None,
         device: torch.device | str = "cpu",
@@ -219,7 +237,9 @@ class SACAgent:
             else make_actor(net, action_spec, device, group=group, body=actor_body(self.actor))
         )
         critic = make_critic(net, device)
-        self.loss = SACLoss(
+        anchored = {"anchor_weight": anchor_weight} if anchor_weight > 0 else {}
+        self.loss = (AnchoredSACLoss if anchored else SACLoss)(
+            **anchored,
             actor_network=self.actor,
             qvalue_network=critic,
             num_qvalue_nets=2,

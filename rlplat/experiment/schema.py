@@ -182,6 +182,7 @@ TRAIN_RULES: dict[str, Rule] = {
     "algo.actor_zero_mean": flag,
     "algo.actor_init_std": Num(gt=0, null=True),
     "algo.actor_warmup_updates": Num(integer=True, ge=0),
+    "algo.anchor_weight": Num(ge=0),
     "algo.compile": flag,
     "drone.name": Text(),
     "drone.learner": Choice(ROLES),

@@ -317,6 +317,7 @@ def make_agent(net: NetSpec, env: PursuitEnv, algo: DictConfig, device) -> SACAg
         alpha_init=algo.alpha_init,
         target_entropy=algo.target_entropy,
         loss_function=algo.loss_function,
+        anchor_weight=algo.anchor_weight,
         compile=algo.compile,
         group=env.group,
         device=device,
