@@ -348,6 +348,7 @@ SAC_PAPER_KEPT = {
     "actor_zero_mean": False,
     "actor_init_std": None,
     "actor_warmup_updates": 0,
+    "anchor_weight": 0.0,
 }
 
 
