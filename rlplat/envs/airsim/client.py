@@ -128,14 +128,22 @@ class _Expired(Exception):
     """No answer before the deadline."""
 
 
+#: How the msgpack-rpc library words a failed or closed connection (the text of its
+#: ``TransportError``s, which is what a call's error then holds).
+_LIBRARY_LOSSES = (
+    "Retry connection over the limit",
+    "Client is closed, connection could not be set",
+)
+
+
 def _no_connection(reason: Any) -> bool:
-    """The connection failed or was lost (not a timeout, not an error the simulator answered):
-    the library reports a failed connect as a string naming the connection."""
+    """The connection failed or was lost (not a timeout, not an error the simulator answered,
+    whatever its words)."""
     from msgpackrpc.error import TransportError
 
     if isinstance(reason, (_Lost, TransportError, OSError)):
         return True
-    return isinstance(reason, str) and "connection" in reason.lower()
+    return isinstance(reason, str) and reason in _LIBRARY_LOSSES
 
 
 def _retrieved(task) -> None:
@@ -479,6 +487,7 @@ class AirSimClient:
         """Every vehicle back to its spawn point at rest (``reset``); API control and arming
         are cleared by it: :meth:`take_control` again."""
         self.call("reset", "resetting the simulation", self._api.reset)
+        self._moves.clear()  # the reset ended them
 
     def take_control(self, name: str) -> None:
         """API control on and armed (again after any simulator ``reset``)."""
