@@ -67,6 +67,49 @@ def test_a_guided_action_refuses_bad_knobs(scenarios, key, value):
         make_env(GUIDED, f"action.{key}={value}", scenarios=scenarios)
 
 
+LAW = "action=guidance_law"
+
+
+@pytest.mark.parametrize(
+    "action,law",
+    [
+        ((0.0, 0.0, 0.0), {}),  # the zero action: the configured law itself
+        ((0.0, -1.0, 0.0), {"lead": 0.0}),  # no lead: pure pursuit's command
+        ((1.0, 0.5, -1.0), {"gain": 25.0, "lead": 0.75, "max_lead_time": 1.0}),
+        ((-1.0, 1.0, 1.0), {"gain": 1.0, "lead": 1.0, "max_lead_time": 16.0}),
+    ],
+)
+def test_a_law_action_flies_the_law_it_sets(scenarios, action, law):
+    n = len(scenarios.split("val"))
+    plain = make_env(PLAIN, scenarios=scenarios, num_envs=n, split="val")
+    learned = make_env(PLAIN, LAW, scenarios=scenarios, num_envs=n, split="val")
+    pn = make_scripted_policy("proportional_navigation", plain, **law)
+    a, b = plain.reset(), learned.reset()
+    for _ in range(30):
+        a = plain.step(pn(a))["next"]
+        b = learned.step(b.set("action", torch.tensor(action).expand(n, 3)))["next"]
+        # gain * f ** a is rounded once more than the plain law's gain (an ulp at most)
+        torch.testing.assert_close(a["positions"], b["positions"], rtol=0, atol=1e-4)
+
+
+def test_a_law_action_flies_no_scripted_policy(scenarios):
+    env = make_env(PLAIN, LAW, scenarios=scenarios, num_envs=4, split="val")
+    with pytest.raises(ConfigError, match="cannot be flown through"):
+        make_scripted_policy("pure_pursuit", env)(env.reset())
+    from rlplat.experiment.config import compose_config
+    from rlplat.experiment.schema import validate_train_config
+
+    validate_train_config(compose_config("train", [LAW, "algo.init_policy=random"]))
+    with pytest.raises(ConfigError, match="algo.init_policy: 'proportional_navigation' cannot"):
+        validate_train_config(compose_config("train", [LAW]))  # attacker_v4's scripted start
+
+
+@pytest.mark.parametrize("key,value", [("gain_factor", 1), ("lead_reach", -0.1)])
+def test_a_law_action_refuses_bad_knobs(scenarios, key, value):
+    with pytest.raises(ConfigError, match=f"action.{key}"):
+        make_env(LAW, f"action.{key}={value}", scenarios=scenarios)
+
+
 def test_pursuit_state_adds_the_own_maximum_speed(scenarios):
     env = make_env("observation=pursuit_state", scenarios=scenarios, num_envs=5, split="val")
     td = env.reset()

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -269,6 +270,7 @@ class GuidedVelocityAction(VelocityAction):
     """
 
     guided = True
+    invertible = True  # inverse() gives the action that flies any command
 
     def __init__(
         self, *, gain: float = 5.0, lead: float = 0.5, max_lead_time: float = 4.0, scale=2.0
@@ -299,8 +301,127 @@ class GuidedVelocityAction(VelocityAction):
         action (command / max speed) under ``guidance``: exact for ``scale >= 2``."""
         return ((flown - guidance) / self.scale).clamp(-1.0, 1.0)
 
+    def card(self) -> dict[str, Any]:
+        """What an exported controller's action means (the ``action`` entry of its card)."""
+        return {
+            "features": ["dv_cmd.x", "dv_cmd.y", "dv_cmd.z"],
+            "unit": "1: a correction to proportional navigation; the velocity command is "
+            f"clamp(pn + {self.scale:g} * action, -1, 1) times the drone's maximum speed per axis",
+            "guidance": {
+                "law": "proportional_navigation (rlplat.envs.kinematics.intercept_action)",
+                "gain": self.gain,
+                "lead": self.lead,
+                "max_lead_time": self.max_lead_time,
+                "scale": self.scale,
+            },
+        }
 
-ACTIONS = {"velocity": VelocityAction, "guided_velocity": GuidedVelocityAction}
+    def describe(self) -> list[str]:
+        """The same for a C header's comment."""
+        return [
+            "action is a CORRECTION to proportional navigation (action guided_velocity): the",
+            f"velocity command is clamp(pn + {self.scale:g} * action, -1, 1) x max speed per axis,",
+            f"pn the law's action (gain {self.gain:g}/s, lead {self.lead:g}, max lead time "
+            f"{self.max_lead_time:g} s; rlplat.envs.kinematics.intercept_action).",
+        ]
+
+
+class GuidanceLawAction(GuidedVelocityAction):
+    """The policy flies proportional navigation and sets the law's parameters, every step.
+
+    The action's three components in [-1, 1] set, around the law of ``gain``, ``lead`` and
+    ``max_lead_time`` (a zero action flies that law exactly):
+    ``gain * gain_factor ** a0``, ``lead + lead_reach * a1`` (at least 0) and
+    ``max_lead_time * horizon_factor ** a2``. Every action flies some guidance law, so
+    exploring never leaves the family; a scripted policy cannot be flown through it (no
+    inverse). Attackers only.
+
+    Args:
+        gain, lead, max_lead_time: the law of the zero action.
+        gain_factor: > 1, the gain's range is [gain / factor, gain * factor].
+        lead_reach: >= 0, the lead's range is lead ± reach (clipped at 0).
+        horizon_factor: > 1, the longest prediction's range, as for the gain.
+    """
+
+    def __init__(
+        self,
+        *,
+        gain: float = 5.0,
+        lead: float = 0.5,
+        max_lead_time: float = 4.0,
+        gain_factor: float = 5.0,
+        lead_reach: float = 0.5,
+        horizon_factor: float = 4.0,
+    ) -> None:
+        super().__init__(gain=gain, lead=lead, max_lead_time=max_lead_time)
+        for name, v in (("gain_factor", gain_factor), ("horizon_factor", horizon_factor)):
+            if not v > 1:
+                raise ConfigError(f"action.{name}: must be > 1, got {v}")
+        if not lead_reach >= 0:
+            raise ConfigError(f"action.lead_reach: must be >= 0, got {lead_reach}")
+        self.gain_factor, self.lead_reach = float(gain_factor), float(lead_reach)
+        self.horizon_factor = float(horizon_factor)
+
+    def guidance(self, rel: Tensor, v_other: Tensor, max_speed: Tensor) -> Tensor:
+        """The geometry the law needs, (*B, 7): target offset, its velocity, the max speed."""
+        return torch.cat([rel, v_other, max_speed.unsqueeze(-1)], -1)
+
+    def __call__(self, action: Tensor, max_speed: Tensor, guidance: Tensor | None = None) -> Tensor:
+        if guidance is None:
+            raise ValueError("action: a guided action needs the guidance action")
+        gain, lead, horizon = self.law(action)
+        rel, v_other, speed = guidance[..., :3], guidance[..., 3:6], guidance[..., 6:7]
+        return intercept_action(rel, v_other, speed, gain, lead, horizon) * speed
+
+    #: No action flies an arbitrary command: a scripted policy is flown on a plain velocity
+    #: action instead (the training's reference), or not at all (``algo.init_policy``).
+    invertible = False
+
+    def inverse(self, flown: Tensor, guidance: Tensor) -> Tensor:
+        raise ConfigError(
+            "action=guidance_law: a scripted policy cannot be flown through it (no action "
+            "gives an arbitrary command)"
+        )
+
+    def law(self, action: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The gain, lead and longest prediction (each (*B, 1)) that ``action`` (*B, 3) sets."""
+        a = action.clamp(-1.0, 1.0)
+        gain = self.gain * self.gain_factor ** a[..., 0:1]
+        lead = (self.lead + self.lead_reach * a[..., 1:2]).clamp_min(0.0)
+        return gain, lead, self.max_lead_time * self.horizon_factor ** a[..., 2:3]
+
+    def card(self) -> dict[str, Any]:
+        return {
+            "features": ["log_gain", "lead", "log_max_lead_time"],
+            "unit": "1: the parameters of proportional navigation, flown by the env: gain = "
+            f"{self.gain:g} * {self.gain_factor:g}^a0 1/s, lead = max({self.lead:g} + "
+            f"{self.lead_reach:g} * a1, 0), max lead time = {self.max_lead_time:g} * "
+            f"{self.horizon_factor:g}^a2 s",
+            "guidance": {
+                "law": "proportional_navigation (rlplat.envs.kinematics.intercept_action)",
+                "gain": self.gain,
+                "lead": self.lead,
+                "max_lead_time": self.max_lead_time,
+                "gain_factor": self.gain_factor,
+                "lead_reach": self.lead_reach,
+                "horizon_factor": self.horizon_factor,
+            },
+        }
+
+    def describe(self) -> list[str]:
+        return [
+            "action SETS proportional navigation's parameters (action guidance_law); the env",
+            f"flies the law: gain {self.gain:g} * {self.gain_factor:g}^a0 1/s, lead max("
+            f"{self.lead:g} + {self.lead_reach:g} * a1, 0), max lead time {self.max_lead_time:g}"
+            f" * {self.horizon_factor:g}^a2 s (rlplat.envs.kinematics.intercept_action).",
+        ]
+
+
+ACTIONS = {
+    "velocity": VelocityAction,
+    "guided_velocity": GuidedVelocityAction,
+    "guidance_law": GuidanceLawAction,
+}
 
 
 # Rewards ---------------------------------------------------------------------------------

@@ -211,14 +211,7 @@ def describe_lines(src: Source, env, features: list[dict[str, Any]]) -> list[str
         f"  [{i}] {f['name']}, {f['unit']} (scale {f['scale']:g})" for i, f in enumerate(features)
     ]
     if getattr(env.action_fn, "guided", False):
-        a = env.action_fn
-        lines += [
-            "",
-            "action is a CORRECTION to proportional navigation (action guided_velocity): the",
-            f"velocity command is clamp(pn + {a.scale:g} * action, -1, 1) x max speed per axis,",
-            f"pn the law's action (gain {a.gain:g}/s, lead {a.lead:g}, max lead time "
-            f"{a.max_lead_time:g} s; rlplat.envs.kinematics.intercept_action).",
-        ]
+        lines += ["", *env.action_fn.describe()]
     return lines
 
 
@@ -249,19 +242,8 @@ def interface_card(src: Source, env, actor: DeterministicActor, features) -> dic
         "unit": "1: times the drone's maximum speed per axis (m/s) = the velocity command",
     }
     if getattr(env.action_fn, "guided", False):
-        a = env.action_fn
-        action["features"] = ["dv_cmd.x", "dv_cmd.y", "dv_cmd.z"][: actor.action_dim]
-        action["unit"] = (
-            "1: a correction to proportional navigation; the velocity command is "
-            f"clamp(pn + {a.scale:g} * action, -1, 1) times the drone's maximum speed per axis"
-        )
-        action["guidance"] = {
-            "law": "proportional_navigation (rlplat.envs.kinematics.intercept_action)",
-            "gain": a.gain,
-            "lead": a.lead,
-            "max_lead_time": a.max_lead_time,
-            "scale": a.scale,
-        }
+        card = env.action_fn.card()
+        action.update(card, features=card["features"][: actor.action_dim])
     return {
         "observation": {"name": src.cfg.observation.name, "dim": actor.obs_dim,
                         "features": features},

@@ -242,6 +242,9 @@ ACTION_KNOBS: dict[str, Rule] = {
     "lead": NON_NEGATIVE,
     "max_lead_time": NON_NEGATIVE,
     "scale": POSITIVE,
+    "gain_factor": Num(gt=1),
+    "lead_reach": NON_NEGATIVE,
+    "horizon_factor": Num(gt=1),
 }
 #: Component groups: registry, knob rules, and the arguments the env factory passes itself.
 COMPONENTS: dict[str, tuple[Mapping[str, Any], Mapping[str, Rule], tuple[str, ...]]] = {
@@ -338,6 +341,12 @@ def _check_train_fields(c: Mapping[str, Any]) -> None:
         raise ConfigError(
             f"algo.init_policy: {show(policy)} flies the {SCRIPTED[policy].role}, "
             f"drone.learner is the {learner}; valid: {', '.join(valid)}"
+        )
+    action = ACTIONS.get(c["action"].get("name"))
+    if policy != "random" and not getattr(action, "invertible", True):
+        raise ConfigError(
+            f"algo.init_policy: {show(policy)} cannot be flown through action="
+            f"{c['action']['name']} (its actions set the guidance law's parameters); valid: random"
         )
     first_update = max(algo["batch_size"], algo["init_random_frames"] * _learning_drones(c))
     if algo["buffer_size"] < first_update:

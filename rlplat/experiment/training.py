@@ -42,6 +42,7 @@ from rlplat.errors import ConfigError
 from rlplat.eval.episodes import SCORE_NAME, EpisodeResults, evaluate
 from rlplat.eval.metrics import wilson_interval
 from rlplat.eval.plots import plot_learning_curve
+from rlplat.experiment.evaluation import plain_action
 from rlplat.experiment.factory import build_env, resolve_scenarios
 from rlplat.experiment.logger import Metrics, make_logger
 from rlplat.experiment.schema import check_resume, validate_train_config
@@ -149,7 +150,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     run_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(run_dir / "config.yaml", OmegaConf.to_yaml(config))
     run.metrics = Metrics(run_dir, make_logger(cfg.logger, run_dir, cfg.drone.name, config))
-    reference = evaluate(val_env, make_scripted_policy(REFERENCE[run.role], val_env))
+    reference = measure_reference(cfg, run, device)
     run.metrics.log({f"reference/{k}": v for k, v in reference.summary().items()}, state.frames)
     log.info("%s on the validation split: %s", REFERENCE[run.role], outcome(reference, run.role))
 
@@ -295,6 +296,15 @@ def make_eval_env(cfg: DictConfig, scenarios: ScenarioSet, split: str, device) -
         cfg, scenarios=scenarios, split=split, num_envs=n, device=device,
         scenario_order="sequential",
     )  # fmt: skip
+
+
+def measure_reference(cfg: DictConfig, run: Run, device) -> EpisodeResults:
+    """The scripted reference on the validation split: through the run's action where a
+    scripted command can be flown through it, else on the plain velocity action."""
+    env = run.val_env
+    if not getattr(env.action_fn, "invertible", True):
+        env = make_eval_env(plain_action(cfg), run.scenarios, "val", device)
+    return evaluate(env, make_scripted_policy(REFERENCE[run.role], env))
 
 
 def seed_everything(seed: int, env: PursuitEnv) -> None:
