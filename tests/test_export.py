@@ -278,19 +278,30 @@ def _spec():
     return Bounded(-1.0, 1.0, shape=(3,))
 
 
-def test_a_guided_controller_exports_with_its_guidance(scenarios, tmp_path, short_run):
-    # The default attacker_v4 learns a correction to proportional navigation: the artifacts
-    # compute the correction, the card and header say what the command is, and the C
-    # controller flies the evaluation with the torch outcomes (the env adds the guidance).
-    run = short_run(scenarios, tmp_path / "run", "drone=attacker_v4")
+@pytest.mark.parametrize(
+    "drone,action_name,unit,header",
+    [
+        ("attacker_v4", "guided_velocity", "a correction to proportional navigation",
+         "CORRECTION to proportional navigation"),
+        ("attacker_v5", "guidance_law", "the parameters of proportional navigation",
+         "SETS proportional navigation's parameters"),
+    ],
+)  # fmt: skip
+def test_a_guided_controller_exports_with_its_guidance(
+    scenarios, tmp_path, short_run, drone, action_name, unit, header
+):
+    # attacker_v4 learns a correction to proportional navigation, attacker_v5 the law's
+    # parameters: the artifacts compute the action, the card and header say what the env makes
+    # of it, and the C controller flies the evaluation with the torch outcomes.
+    run = short_run(scenarios, tmp_path / "run", f"drone={drone}")
     export_run(run, ckpt="last", **QUICK)
     out = run / "export" / "last"
     card = json.loads((out / "card.json").read_text())
     action = card["interface"]["action"]
-    assert action["name"] == "guided_velocity" and action["guidance"]["lead"] == 0.5
-    assert "correction to proportional navigation" in action["unit"]
+    assert action["name"] == action_name and action["guidance"]["lead"] == 0.5
+    assert unit in action["unit"]
     assert card["interface"]["observation"]["dim"] == 10
-    assert "CORRECTION to proportional navigation" in (out / "policy.h").read_text()
+    assert header in (out / "policy.h").read_text()
     ev = evaluate_run(run, policy="c", ckpt="last", plots=False)
     assert ev.summary["outcomes_differing_from_torch"] == 0
 

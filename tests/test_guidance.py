@@ -94,8 +94,8 @@ def test_a_law_action_flies_the_law_it_sets(scenarios, action, law):
 
 def test_a_law_action_flies_no_scripted_policy(scenarios):
     env = make_env(PLAIN, LAW, scenarios=scenarios, num_envs=4, split="val")
-    with pytest.raises(ConfigError, match="cannot be flown through"):
-        make_scripted_policy("pure_pursuit", env)(env.reset())
+    with pytest.raises(ConfigError, match="pure_pursuit cannot be flown through action=guidance"):
+        make_scripted_policy("pure_pursuit", env)
     from rlplat.experiment.config import compose_config
     from rlplat.experiment.schema import validate_train_config
 

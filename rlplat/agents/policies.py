@@ -214,6 +214,11 @@ def make_scripted_policy(name: str, env: PursuitEnv, **kwargs: Any) -> TensorDic
         **{"gain": getattr(env, scripted.gain), **kwargs},
     )
     if getattr(env.action_fn, "guided", False):
+        if not getattr(env.action_fn, "invertible", True):
+            raise ConfigError(
+                f"policy: {name} cannot be flown through action={env.action_fn.name} (its "
+                "actions set the guidance law's parameters; fly it on action=velocity)"
+            )
         module = Unguided(module, env)
     return TensorDictModule(module, in_keys=list(module.in_keys), out_keys=[env.action_key])
 

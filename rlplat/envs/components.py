@@ -376,6 +376,7 @@ class GuidanceLawAction(GuidedVelocityAction):
     #: No action flies an arbitrary command: a scripted policy is flown on a plain velocity
     #: action instead (the training's reference), or not at all (``algo.init_policy``).
     invertible = False
+    name = "guidance_law"
 
     def inverse(self, flown: Tensor, guidance: Tensor) -> Tensor:
         raise ConfigError(
