@@ -46,8 +46,12 @@ def test_every_group_has_options():
     assert "algo=sac_paper" in OPTIONS and "drone=defender_v1" in OPTIONS
 
 
-# What an option needs besides the defaults: AirSim flies one env per simulator.
-NEEDS = {"dynamics=airsim": ["algo.num_envs=1"]}
+# What an option needs besides the defaults: AirSim flies one env per simulator; no scripted
+# start can be flown through an action that sets the guidance law.
+NEEDS = {
+    "dynamics=airsim": ["algo.num_envs=1"],
+    "action=guidance_law": ["algo.init_policy=random"],
+}
 
 
 @pytest.mark.parametrize("option", [None, *OPTIONS])

@@ -54,13 +54,20 @@ def test_registries_match_config_groups():
         "attacker_v2",
         "attacker_v3",
         "attacker_v4",
+        "attacker_v5",
         "defender_v1",
     }
 
 
 @pytest.mark.parametrize(
     ("drone", "dim"),
-    [("attacker_v1", 12), ("attacker_v2", 3), ("attacker_v3", 9), ("attacker_v4", 10)],
+    [
+        ("attacker_v1", 12),
+        ("attacker_v2", 3),
+        ("attacker_v3", 9),
+        ("attacker_v4", 10),
+        ("attacker_v5", 10),
+    ],
 )
 def test_drone_bundles_pick_their_observation_and_cli_wins(scenarios, drone, dim):
     env = make_env(f"drone={drone}", scenarios=scenarios.path, num_envs=2)
