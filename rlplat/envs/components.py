@@ -343,6 +343,11 @@ class GuidanceLawAction(GuidedVelocityAction):
         horizon_factor: > 1, the longest prediction's range, as for the gain.
     """
 
+    name = "guidance_law"
+    #: No action flies an arbitrary command: a scripted policy is flown on a plain velocity
+    #: action instead (the training's reference), or not at all (``algo.init_policy``).
+    invertible = False
+
     def __init__(
         self,
         *,
@@ -367,16 +372,13 @@ class GuidanceLawAction(GuidedVelocityAction):
         return torch.cat([rel, v_other, max_speed.unsqueeze(-1)], -1)
 
     def __call__(self, action: Tensor, max_speed: Tensor, guidance: Tensor | None = None) -> Tensor:
+        """The law's command (*B, 3) m/s for the parameters ``action`` sets; the speed limit is
+        the one ``guidance`` carries (the same ``max_speed``)."""
         if guidance is None:
             raise ValueError("action: a guided action needs the guidance action")
         gain, lead, horizon = self.law(action)
         rel, v_other, speed = guidance[..., :3], guidance[..., 3:6], guidance[..., 6:7]
         return intercept_action(rel, v_other, speed, gain, lead, horizon) * speed
-
-    #: No action flies an arbitrary command: a scripted policy is flown on a plain velocity
-    #: action instead (the training's reference), or not at all (``algo.init_policy``).
-    invertible = False
-    name = "guidance_law"
 
     def inverse(self, flown: Tensor, guidance: Tensor) -> Tensor:
         raise ConfigError(

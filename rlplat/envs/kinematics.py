@@ -34,9 +34,9 @@ def intercept_action(
     rel: Tensor,
     v_other: Tensor,
     max_speed: Tensor,
-    gain: float,
-    lead: float = 0.5,
-    max_lead_time: float = 4.0,
+    gain: float | Tensor,
+    lead: float | Tensor = 0.5,
+    max_lead_time: float | Tensor = 4.0,
 ) -> Tensor:
     """Proportional navigation with lead, as an action in [-1, 1] per axis (command / max speed).
 
@@ -53,6 +53,8 @@ def intercept_action(
         gain: 1/s, command per metre to the aim point.
         lead: fraction of the predicted target motion to lead by.
         max_lead_time: s, longest prediction.
+
+    The three parameters may also be tensors (*B, 1), one law per row.
     """
     closing = max_speed - torch.sign(rel) * v_other  # per-axis closing speed at full throttle
     t_axis = torch.where(closing > 1e-6, rel.abs() / closing.clamp_min(1e-6), max_lead_time)
