@@ -307,13 +307,16 @@ class GuidedVelocityAction(VelocityAction):
             "features": ["dv_cmd.x", "dv_cmd.y", "dv_cmd.z"],
             "unit": "1: a correction to proportional navigation; the velocity command is "
             f"clamp(pn + {self.scale:g} * action, -1, 1) times the drone's maximum speed per axis",
-            "guidance": {
-                "law": "proportional_navigation (rlplat.envs.kinematics.intercept_action)",
-                "gain": self.gain,
-                "lead": self.lead,
-                "max_lead_time": self.max_lead_time,
-                "scale": self.scale,
-            },
+            "guidance": {**self._law_card(), "scale": self.scale},
+        }
+
+    def _law_card(self) -> dict[str, Any]:
+        """The guidance law under the action, for the card."""
+        return {
+            "law": "proportional_navigation (rlplat.envs.kinematics.intercept_action)",
+            "gain": self.gain,
+            "lead": self.lead,
+            "max_lead_time": self.max_lead_time,
         }
 
     def describe(self) -> list[str]:
@@ -401,10 +404,7 @@ class GuidanceLawAction(GuidedVelocityAction):
             f"{self.lead_reach:g} * a1, 0), max lead time = {self.max_lead_time:g} * "
             f"{self.horizon_factor:g}^a2 s",
             "guidance": {
-                "law": "proportional_navigation (rlplat.envs.kinematics.intercept_action)",
-                "gain": self.gain,
-                "lead": self.lead,
-                "max_lead_time": self.max_lead_time,
+                **self._law_card(),
                 "gain_factor": self.gain_factor,
                 "lead_reach": self.lead_reach,
                 "horizon_factor": self.horizon_factor,

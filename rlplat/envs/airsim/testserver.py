@@ -706,9 +706,9 @@ def main(argv: Sequence[str] | None = None, settings: Mapping[str, Any] | None =
         except (OSError, ValueError) as err:
             raise ConfigError(f"--settings {path}: cannot read a settings.json: {err}") from None
     port = args.port
-    if port is None:
-        port = settings.get("ApiServerPort", DEFAULT_PORT) if isinstance(settings, dict) else None
-        port = port if isinstance(port, int) else DEFAULT_PORT
+    if port is None:  # the settings' own port where they give one
+        given = settings.get("ApiServerPort") if isinstance(settings, Mapping) else None
+        port = given if isinstance(given, int) else DEFAULT_PORT
     server = TestServer(
         settings,
         args.host,
