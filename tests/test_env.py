@@ -19,6 +19,7 @@ from rlplat.envs.components import (
 from rlplat.envs.kinematics import follow_route
 from rlplat.envs.pursuit import PursuitEnv, _closest_approach
 from rlplat.errors import ConfigError
+from rlplat.experiment.config import compose_config
 
 CONF = Path(__file__).resolve().parent.parent / "conf"
 
@@ -55,6 +56,7 @@ def test_registries_match_config_groups():
         "attacker_v3",
         "attacker_v4",
         "attacker_v5",
+        "attacker_v6",
         "defender_v1",
     }
 
@@ -67,6 +69,7 @@ def test_registries_match_config_groups():
         ("attacker_v3", 9),
         ("attacker_v4", 10),
         ("attacker_v5", 10),
+        ("attacker_v6", 10),
     ],
 )
 def test_drone_bundles_pick_their_observation_and_cli_wins(scenarios, drone, dim):
@@ -142,6 +145,24 @@ def test_shaped_strict_makes_losing_sight_the_worst_in_flight_step():
     # Same in view as eq. 3; a crash still costs the worst step over the discounted horizon.
     torch.testing.assert_close(step(strict, True), step(eq3, True))
     assert strict.terms.ground_contact <= strict.terms.out_of_view / (1.0 - 0.99)
+
+
+def test_attacker_v6_pays_a_late_capture_and_never_a_crash_under_its_discount():
+    cfg = compose_config("train", ["drone=attacker_v6"])
+    eq3 = OmegaConf.load(CONF / "reward" / "shaped.yaml").terms
+    terms, gamma = cfg.reward.terms, cfg.algo.gamma
+    # In flight it pays eq. 3's terms; only the capture and the crash are scaled.
+    assert {k: terms[k] for k in eq3 if k not in ("capture", "ground_contact")} == {
+        k: v for k, v in eq3.items() if k not in ("capture", "ground_contact")
+    }
+    horizon = 1.0 / (1.0 - gamma)
+    # A crash costs more than losing sight for the whole discounted horizon.
+    assert terms.ground_contact <= terms.out_of_view * horizon
+    # A capture 20 s ahead (200 steps of 0.1 s) outweighs 20 s of in-view steps at 10 m,
+    # which eq. 3's capture does not under the same discount.
+    in_view = terms.in_view_step + terms.distance_sq * (10.0 / cfg.reward.distance_scale) ** 2
+    chase = -in_view * (1.0 - gamma**200) / (1.0 - gamma)
+    assert terms.capture * gamma**200 > chase > eq3.capture * gamma**200
 
 
 def test_unknown_reward_term_lists_valid_ones():
