@@ -76,7 +76,7 @@ def test_drone_bundles_pick_their_observation_and_cli_wins(scenarios, drone, dim
     env = make_env(f"drone={drone}", scenarios=scenarios.path, num_envs=2)
     assert env.observation_spec["observation"].shape == (2, dim)
     shaped = OmegaConf.load(CONF / "reward" / "shaped.yaml").terms
-    assert set(env.reward_fn.weights) == set(shaped)  # shaped by default
+    assert set(env.reward_fn.weights) == set(shaped)  # eq. 3's terms by default
     env = make_env(f"drone={drone}", "reward=sparse", scenarios=scenarios.path)
     assert set(env.reward_fn.weights) == {"capture", "out_of_view", "ground_contact"}
 
@@ -158,11 +158,12 @@ def test_attacker_v6_pays_a_late_capture_and_never_a_crash_under_its_discount():
     horizon = 1.0 / (1.0 - gamma)
     # A crash costs more than losing sight for the whole discounted horizon.
     assert terms.ground_contact <= terms.out_of_view * horizon
-    # A capture 20 s ahead (200 steps of 0.1 s) outweighs 20 s of in-view steps at 10 m,
-    # which eq. 3's capture does not under the same discount.
+    # A capture 20 s ahead outweighs 20 s of in-view steps at 10 m, which eq. 3's capture
+    # does not under the same discount.
+    steps = round(20.0 / cfg.env.control_period)
     in_view = terms.in_view_step + terms.distance_sq * (10.0 / cfg.reward.distance_scale) ** 2
-    chase = -in_view * (1.0 - gamma**200) / (1.0 - gamma)
-    assert terms.capture * gamma**200 > chase > eq3.capture * gamma**200
+    chase = -in_view * (1.0 - gamma**steps) / (1.0 - gamma)
+    assert terms.capture * gamma**steps > chase > eq3.capture * gamma**steps
 
 
 def test_unknown_reward_term_lists_valid_ones():
