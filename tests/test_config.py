@@ -353,6 +353,7 @@ SAC_PAPER_KEPT = {
     "actor_init_std": None,
     "actor_warmup_updates": 0,
     "anchor_weight": 0.0,
+    "failure_weight": 1.0,
 }
 
 

@@ -256,6 +256,25 @@ def test_same_seed_same_rollout(scenarios, order):
     assert not torch.equal(a["scenario_index"], c["scenario_index"])
 
 
+def test_weighted_draws_fly_the_weighted_scenarios_in_proportion(scenarios):
+    env = make_env("env.time_limit=1", scenarios=scenarios, num_envs=64)
+    n = len(env.scenarios)
+    weights = torch.zeros(n)
+    weights[:2] = torch.tensor([1.0, 3.0])  # only scenarios 0 and 1, one in four the first
+    env.sampler.set_weights(weights)
+    env.set_seed(0)
+    drawn = torch.cat([env.reset()["scenario_index"].flatten() for _ in range(16)])
+    assert set(drawn.tolist()) == {0, 1}
+    assert (drawn == 0).float().mean().item() == pytest.approx(0.25, abs=0.05)  # 1024 draws
+    env.set_seed(0)
+    again = torch.cat([env.reset()["scenario_index"].flatten() for _ in range(16)])
+    assert torch.equal(drawn, again)  # the walk's seed fixes the draws
+    env.sampler.set_weights(None)  # the configured order again
+    assert env.reset()["scenario_index"].flatten().tolist() == list(range(64))
+    with pytest.raises(ValueError, match="scenario weights"):
+        env.sampler.set_weights(-torch.ones(n))
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize(
     ("nn_weight", "team", "steps", "atol"),

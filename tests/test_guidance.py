@@ -122,6 +122,27 @@ def test_pursuit_state_adds_the_own_maximum_speed(scenarios):
     torch.testing.assert_close(obs[:, [0, 1, 2, 4, 5, 6, 7, 8, 9]], base)
 
 
+def test_pursuit_clock_adds_the_time_left_until_the_time_limit(scenarios):
+    env = make_env("observation=pursuit_clock", "env.time_limit=2", scenarios=scenarios,
+                   num_envs=5, split="val")  # fmt: skip
+    td = env.reset()
+    assert td["observation"].shape == (5, 11)
+    feature = env.obs_fn.features()[4]
+    assert feature == {"name": "time_left", "unit": "s", "scale": 60.0}
+    left = [td["observation"][:, 4]]
+    for _ in range(20):  # 2 s of 0.1-s steps: the last one truncates every episode
+        td = env.step(td.set("action", torch.zeros(5, 3)))["next"]
+        left.append(td["observation"][:, 4])
+    expected = torch.linspace(2.0, 0.0, 21).unsqueeze(1).expand(21, 5)
+    torch.testing.assert_close(torch.stack(left), expected)
+    assert td["truncated"].all() or td["done"].all()
+    state = make_env("observation=pursuit_state", scenarios=scenarios, num_envs=5, split="val")
+    first = make_env("observation=pursuit_clock", scenarios=scenarios, num_envs=5, split="val")
+    torch.testing.assert_close(
+        first.reset()["observation"][:, [0, 1, 2, 3, *range(5, 11)]], state.reset()["observation"]
+    )
+
+
 # The capture ceiling --------------------------------------------------------------------
 
 

@@ -120,6 +120,27 @@ def test_best_checkpoint_loads_as_a_deterministic_policy(scenarios, tmp_path, ti
     assert torch.equal(a.returns, b.returns)
 
 
+def test_failure_weight_draws_the_references_failures_more_often(
+    scenarios, tmp_path, tiny_run, caplog
+):
+    from rlplat import make_env
+    from rlplat.agents.policies import make_scripted_policy
+    from rlplat.eval.episodes import evaluate
+
+    with caplog.at_level("INFO", logger="rlplat.experiment.training"):
+        tiny_run(scenarios, tmp_path, "algo.failure_weight=4", "env.time_limit=10")
+    n = len(scenarios.split("train"))
+    env = make_env("env.time_limit=10", scenarios=scenarios, split="train", num_envs=n)
+    failed = int(
+        (~evaluate(env, make_scripted_policy("proportional_navigation", env)).captured).sum()
+    )
+    assert 0 < failed < n, "the set must hold failures and captures"
+    share = round(100 * 4 * failed / (4 * failed + n - failed))
+    assert (
+        f"fails {failed} of {n} train scenarios; drawn 4 times as often: {share} %" in caplog.text
+    )
+
+
 def test_same_seed_same_training(scenarios, tmp_path, tiny_run):
     a = tiny_run(scenarios, tmp_path / "a", "seed=3")
     b = tiny_run(scenarios, tmp_path / "b", "seed=3")

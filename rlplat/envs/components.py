@@ -33,6 +33,7 @@ class DroneView:
         other_in_play, mate_in_play: (*B, M) and (*B, K) bool, which opponents and team-mates
             are still in play (False: a caught defender); None where no observation reads them.
         own_max_speed: (*B,) float32 m/s, the drone's maximum speed per axis.
+        time_left: (*B,) float32 s, the time until the episode's time limit.
     """
 
     own_position: Tensor
@@ -45,6 +46,7 @@ class DroneView:
     other_in_play: Tensor | None = None
     mate_in_play: Tensor | None = None
     own_max_speed: Tensor | None = None
+    time_left: Tensor | None = None
 
 
 def inside_ellipsoid(rel: Tensor, semi_axes: Tensor) -> Tensor:
@@ -71,13 +73,14 @@ class _Observation:
     Args:
         position_scale: m, typical magnitude of a position feature.
         velocity_scale: m/s, typical magnitude of a velocity feature.
+        time_scale: s, typical magnitude of a time feature.
         opponents: M, opponents the drone sees (set by the env factory from the scenarios).
         mates: K, team-mates the drone sees (set by the env factory from the scenarios).
         in_play: add each other drone's in-play flag (set by the env factory where defenders
             can leave play before the episode ends: more than one of them).
     """
 
-    own_layout: tuple[str, ...] = ()  # "p" or "v" per 3-vector, "s" per speed of its own features
+    own_layout: tuple[str, ...] = ()  # "p"/"v" per 3-vector, "s" per speed, "t" per time
     other_layout: tuple[str, ...] = ()  # "p" or "v" per 3-vector of each other drone's block
     own_names: tuple[str, ...] = ()  # what each own 3-vector is (same order as own_layout)
     other_names: tuple[str, ...] = ()  # each other drone's, "{d}" standing for that drone
@@ -87,11 +90,14 @@ class _Observation:
         *,
         position_scale: float = 50.0,
         velocity_scale: float = 5.0,
+        time_scale: float = 60.0,
         opponents: int = 1,
         mates: int = 0,
         in_play: bool = False,
     ) -> None:
-        for name, v in (("position_scale", position_scale), ("velocity_scale", velocity_scale)):
+        scales = {"position_scale": position_scale, "velocity_scale": velocity_scale,
+                  "time_scale": time_scale}  # fmt: skip
+        for name, v in scales.items():
             if not v > 0:
                 raise ConfigError(f"observation.{name}: must be > 0, got {v}")
         if opponents < 1 or mates < 0:
@@ -105,6 +111,7 @@ class _Observation:
             "p": [float(position_scale)] * 3,
             "v": [float(velocity_scale)] * 3,
             "s": [float(velocity_scale)],
+            "t": [float(time_scale)],
             "f": [1.0],
         }
         self.scale = [x for kind in layout for x in per[kind]]
@@ -113,7 +120,7 @@ class _Observation:
     def features(self) -> list[dict[str, str | float]]:
         """What each of the ``dim`` features is: ``name`` (e.g. ``(p_opponent0 - p_own).x``),
         ``unit`` (``m``, ``m/s`` or ``1`` for an in-play flag) and ``scale``, in order."""
-        kinds = {"p": ("m", 3), "v": ("m/s", 3), "s": ("m/s", 1), "f": ("1", 1)}
+        kinds = {"p": ("m", 3), "v": ("m/s", 3), "s": ("m/s", 1), "t": ("s", 1), "f": ("1", 1)}
         named = list(zip(self.own_names, self.own_layout, strict=True))
         others = [f"opponent{i}" for i in range(self.opponents)]
         others += [f"mate{j}" for j in range(self.mates)]
@@ -147,7 +154,7 @@ class _Observation:
         return torch.cat([block, in_play.unsqueeze(-1).to(block.dtype)], -1)
 
     def _own(self, view: DroneView) -> list[Tensor]:
-        """The drone's own features, each (*B, 3) (a speed (*B, 1))."""
+        """The drone's own features, each (*B, 3) (a speed or a time (*B, 1))."""
         return []
 
     def _other(self, view: DroneView, position: Tensor, velocity: Tensor) -> Tensor:
@@ -214,6 +221,24 @@ class PursuitStateObservation(RelativeStateObservation):
         return [view.own_velocity, view.own_max_speed.unsqueeze(-1)]
 
 
+class PursuitClockObservation(PursuitStateObservation):
+    """``pursuit_state`` and the time left until the episode's time limit.
+
+    s = [v_own, max_speed_own, time_left, (p_other - p_own, v_other - v_own) per other drone],
+    (*B, 11) with one opponent. An episode cut at its time limit ends a chase whatever the
+    drones do; without the clock that cut is noise to the critic, and the policy cannot tell a
+    chase with a minute left from one with seconds left.
+    """
+
+    own_layout = ("v", "s", "t")
+    own_names = ("v_own", "max_speed_own", "time_left")
+
+    def _own(self, view: DroneView) -> list[Tensor]:
+        if view.time_left is None:
+            raise ValueError("observation pursuit_clock: the view has no time_left")
+        return [*super()._own(view), view.time_left.unsqueeze(-1)]
+
+
 class RouteStateObservation(RelativeStateObservation):
     """What a route-flying defender needs: its own velocity, the way to its next setpoint and
     each other drone's relative state.
@@ -234,6 +259,7 @@ OBSERVATIONS = {
     "relative_position": RelativePositionObservation,
     "relative_state": RelativeStateObservation,
     "pursuit_state": PursuitStateObservation,
+    "pursuit_clock": PursuitClockObservation,
     "route_state": RouteStateObservation,
 }
 

@@ -41,6 +41,8 @@ class ScenarioSampler:
     ``share=(i, c)``: this sampler is the i-th of c that split one walk, each taking every c-th
     index of it from the i-th on (c single-env workers flying one split, as one batch of c
     envs would: with ``sequential``, worker i flies scenarios i, i + c, ...).
+
+    :meth:`set_weights` replaces the order by draws in proportion to per-scenario weights.
     """
 
     def __init__(
@@ -55,9 +57,19 @@ class ScenarioSampler:
         self.index, self.count = int(index), int(count)
         self.seed(0)
 
+    weights: Tensor | None = None  # (n,) float: draw scenario i with weight[i] (None: order)
+
     def seed(self, seed: int) -> None:
         self.generator = torch.Generator().manual_seed(seed)
         self.queue = torch.empty(0, dtype=torch.int64)
+
+    def set_weights(self, weights: Tensor | None) -> None:
+        """Draw each scenario in proportion to ``weights`` (n,) >= 0 (None: the order again)."""
+        if weights is not None:
+            weights = torch.as_tensor(weights, dtype=torch.float64).cpu()
+            if weights.shape != (self.n,) or not (weights >= 0).all() or weights.sum() <= 0:
+                raise ValueError(f"scenario weights: ({self.n},) >= 0, not all 0; got {weights}")
+        self.weights = weights
 
     def get_state(self) -> Tensor:
         """The walk's random state (what a checkpoint keeps)."""
@@ -69,7 +81,9 @@ class ScenarioSampler:
 
     def next(self, k: int) -> Tensor:
         """Indices (k,) int64 of the next k scenarios."""
-        if self.order == "random":
+        if self.weights is not None:
+            idx = torch.multinomial(self.weights, k, replacement=True, generator=self.generator)
+        elif self.order == "random":
             idx = torch.randint(self.n, (k,), generator=self.generator)
         else:
             need = k * self.count
@@ -547,8 +561,10 @@ class PursuitEnv(EnvBase):
         other_v = v[:, self.opponents].unsqueeze(1).expand(n, t, -1, 3)
         target, route_done = self._target()
         setpoint = target if self.learner != ATTACKER else target[:, :1].expand(n, t, 3)
+        time_left = (self.max_steps - self.step_count) * self.control_period  # (N,) s
         view = DroneView(own_p, own_v, other_p, other_v, setpoint,
-                         own_max_speed=self.max_speed[:, self.team])  # fmt: skip
+                         own_max_speed=self.max_speed[:, self.team],
+                         time_left=time_left.to(p.dtype).unsqueeze(1).expand(n, t))  # fmt: skip
         if t > 1:
             view = replace(view, mate_position=own_p[:, self._mate_index],
                            mate_velocity=own_v[:, self._mate_index])  # fmt: skip

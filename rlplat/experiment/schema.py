@@ -183,6 +183,7 @@ TRAIN_RULES: dict[str, Rule] = {
     "algo.actor_init_std": Num(gt=0, null=True),
     "algo.actor_warmup_updates": Num(integer=True, ge=0),
     "algo.anchor_weight": Num(ge=0),
+    "algo.failure_weight": Num(gt=0),
     "algo.compile": flag,
     "drone.name": Text(),
     "drone.learner": Choice(ROLES),
@@ -235,7 +236,11 @@ DYNAMICS_KNOBS: dict[str, Rule] = {
     "move_margin_s": POSITIVE,
 }
 #: Knobs of the observations (conf/observation/).
-OBSERVATION_KNOBS: dict[str, Rule] = {"position_scale": POSITIVE, "velocity_scale": POSITIVE}
+OBSERVATION_KNOBS: dict[str, Rule] = {
+    "position_scale": POSITIVE,
+    "velocity_scale": POSITIVE,
+    "time_scale": POSITIVE,
+}
 #: Knobs of the actions (conf/action/).
 ACTION_KNOBS: dict[str, Rule] = {
     "gain": POSITIVE,

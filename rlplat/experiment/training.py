@@ -153,6 +153,8 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     reference = measure_reference(cfg, run, device)
     run.metrics.log({f"reference/{k}": v for k, v in reference.summary().items()}, state.frames)
     log.info("%s on the validation split: %s", REFERENCE[run.role], outcome(reference, run.role))
+    if algo.failure_weight != 1.0:
+        weight_failures(cfg, run, algo.failure_weight, device)
 
     # Create the replay buffer and the collector
     buffer = TensorDictReplayBuffer(
@@ -305,6 +307,25 @@ def measure_reference(cfg: DictConfig, run: Run, device) -> EpisodeResults:
     if not getattr(env.action_fn, "invertible", True):
         env = make_eval_env(plain_action(cfg), run.scenarios, "val", device)
     return evaluate(env, make_scripted_policy(REFERENCE[run.role], env))
+
+
+def weight_failures(cfg: DictConfig, run: Run, weight: float, device) -> None:
+    """Train on the scenarios the scripted reference fails (an attacker: no capture; a
+    defender: caught) ``weight`` times as often as on the others (``algo.failure_weight``):
+    the reference flown once on the train split, the env's walk replaced by weighted draws.
+    Where the reference already succeeds there is little to learn; where it fails is where a
+    policy can pass it."""
+    train_env = make_eval_env(cfg, run.scenarios, "train", device)
+    if not getattr(train_env.action_fn, "invertible", True):
+        train_env = make_eval_env(plain_action(cfg), run.scenarios, "train", device)
+    flown = evaluate(train_env, make_scripted_policy(REFERENCE[run.role], train_env))
+    failed = torch.zeros(len(run.scenarios.split("train")), dtype=torch.bool)
+    lost = ~flown.captured if run.role == "attacker" else flown.captured  # a defender is caught
+    failed[flown.scenario_index.cpu()] = lost.cpu()
+    run.env.sampler.set_weights(torch.where(failed, weight, 1.0))
+    share = weight * failed.sum() / (weight * failed.sum() + (~failed).sum())
+    log.info("%s fails %d of %d train scenarios; drawn %.0f times as often: %.0f %% of episodes",
+             REFERENCE[run.role], failed.sum(), failed.numel(), weight, 100 * share)  # fmt: skip
 
 
 def seed_everything(seed: int, env: PursuitEnv) -> None:
