@@ -119,7 +119,7 @@ class _Observation:
 
     def features(self) -> list[dict[str, str | float]]:
         """What each of the ``dim`` features is: ``name`` (e.g. ``(p_opponent0 - p_own).x``),
-        ``unit`` (``m``, ``m/s`` or ``1`` for an in-play flag) and ``scale``, in order."""
+        ``unit`` (``m``, ``m/s``, ``s`` or ``1`` for an in-play flag) and ``scale``, in order."""
         kinds = {"p": ("m", 3), "v": ("m/s", 3), "s": ("m/s", 1), "t": ("s", 1), "f": ("1", 1)}
         named = list(zip(self.own_names, self.own_layout, strict=True))
         others = [f"opponent{i}" for i in range(self.opponents)]

@@ -55,9 +55,8 @@ class ScenarioSampler:
             raise ValueError(f"scenario_share: (index, count) with 0 <= index < count, got {share}")
         self.n, self.order, self.device = n, order, device
         self.index, self.count = int(index), int(count)
+        self.weights: Tensor | None = None  # (n,) float64: scenario i drawn with weight i
         self.seed(0)
-
-    weights: Tensor | None = None  # (n,) float: draw scenario i with weight[i] (None: order)
 
     def seed(self, seed: int) -> None:
         self.generator = torch.Generator().manual_seed(seed)
