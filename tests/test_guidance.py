@@ -135,7 +135,7 @@ def test_pursuit_clock_adds_the_time_left_until_the_time_limit(scenarios):
         left.append(td["observation"][:, 4])
     expected = torch.linspace(2.0, 0.0, 21).unsqueeze(1).expand(21, 5)
     torch.testing.assert_close(torch.stack(left), expected)
-    assert td["truncated"].all() or td["done"].all()
+    assert td["done"].all()
     state = make_env("observation=pursuit_state", scenarios=scenarios, num_envs=5, split="val")
     first = make_env("observation=pursuit_clock", scenarios=scenarios, num_envs=5, split="val")
     torch.testing.assert_close(

@@ -121,23 +121,35 @@ def test_best_checkpoint_loads_as_a_deterministic_policy(scenarios, tmp_path, ti
 
 
 def test_failure_weight_draws_the_references_failures_more_often(
-    scenarios, tmp_path, tiny_run, caplog
+    scenarios, tmp_path, tiny_run, caplog, monkeypatch
 ):
     from rlplat import make_env
     from rlplat.agents.policies import make_scripted_policy
+    from rlplat.envs.pursuit import ScenarioSampler
     from rlplat.eval.episodes import evaluate
 
+    given, set_weights = [], ScenarioSampler.set_weights
+
+    def record(self, weights):
+        given.append((self.n, weights))
+        set_weights(self, weights)
+
+    monkeypatch.setattr(ScenarioSampler, "set_weights", record)
     with caplog.at_level("INFO", logger="rlplat.experiment.training"):
         tiny_run(scenarios, tmp_path, "algo.failure_weight=4", "env.time_limit=10")
     n = len(scenarios.split("train"))
     env = make_env("env.time_limit=10", scenarios=scenarios, split="train", num_envs=n)
-    failed = int(
-        (~evaluate(env, make_scripted_policy("proportional_navigation", env)).captured).sum()
-    )
-    assert 0 < failed < n, "the set must hold failures and captures"
-    share = round(100 * 4 * failed / (4 * failed + n - failed))
-    assert (
-        f"fails {failed} of {n} train scenarios; drawn 4 times as often: {share} %" in caplog.text
+    law = evaluate(env, make_scripted_policy("proportional_navigation", env))
+    failed = torch.zeros(n, dtype=torch.bool)
+    failed[law.scenario_index] = ~law.captured
+    k = int(failed.sum())
+    assert 0 < k < n, "the set must hold failures and captures"
+    # The training env's walk, and only it, becomes draws: 4 for each of the law's failures.
+    assert len(given) == 1 and given[0][0] == n
+    assert torch.equal(given[0][1], torch.where(failed, 4.0, 1.0))
+    share = 100 * 4 * k / (4 * k + n - k)
+    assert f"fails {k} of {n} train scenarios; drawn 4 times as often: {share:.0f} %" in (
+        caplog.text
     )
 
 

@@ -323,9 +323,10 @@ def weight_failures(cfg: DictConfig, run: Run, weight: float, device) -> None:
     lost = ~flown.captured if run.role == "attacker" else flown.captured  # a defender is caught
     failed[flown.scenario_index.cpu()] = lost.cpu()
     run.env.sampler.set_weights(torch.where(failed, weight, 1.0))
-    share = weight * failed.sum() / (weight * failed.sum() + (~failed).sum())
-    log.info("%s fails %d of %d train scenarios; drawn %.0f times as often: %.0f %% of episodes",
-             REFERENCE[run.role], failed.sum(), failed.numel(), weight, 100 * share)  # fmt: skip
+    k, n = int(failed.sum()), failed.numel()
+    share = 100 * weight * k / (weight * k + n - k)
+    log.info("%s fails %d of %d train scenarios; drawn %g times as often: %.0f %% of episodes",
+             REFERENCE[run.role], k, n, weight, share)  # fmt: skip
 
 
 def seed_everything(seed: int, env: PursuitEnv) -> None:
