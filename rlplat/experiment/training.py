@@ -150,7 +150,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     run_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(run_dir / "config.yaml", OmegaConf.to_yaml(config))
     run.metrics = Metrics(run_dir, make_logger(cfg.logger, run_dir, cfg.drone.name, config))
-    reference = measure_reference(cfg, run, device)
+    reference = fly_reference(cfg, run, "val", device)
     run.metrics.log({f"reference/{k}": v for k, v in reference.summary().items()}, state.frames)
     log.info("%s on the validation split: %s", REFERENCE[run.role], outcome(reference, run.role))
     if algo.failure_weight != 1.0:
@@ -300,12 +300,12 @@ def make_eval_env(cfg: DictConfig, scenarios: ScenarioSet, split: str, device) -
     )  # fmt: skip
 
 
-def measure_reference(cfg: DictConfig, run: Run, device) -> EpisodeResults:
-    """The scripted reference on the validation split: through the run's action where a
-    scripted command can be flown through it, else on the plain velocity action."""
-    env = run.val_env
+def fly_reference(cfg: DictConfig, run: Run, split: str, device) -> EpisodeResults:
+    """The scripted reference on ``split``: through the run's action where a scripted command
+    can be flown through it, else on the plain velocity action."""
+    env = run.val_env if split == "val" else make_eval_env(cfg, run.scenarios, split, device)
     if not getattr(env.action_fn, "invertible", True):
-        env = make_eval_env(plain_action(cfg), run.scenarios, "val", device)
+        env = make_eval_env(plain_action(cfg), run.scenarios, split, device)
     return evaluate(env, make_scripted_policy(REFERENCE[run.role], env))
 
 
@@ -315,10 +315,7 @@ def weight_failures(cfg: DictConfig, run: Run, weight: float, device) -> None:
     the reference flown once on the train split, the env's walk replaced by weighted draws.
     Where the reference already succeeds there is little to learn; where it fails is where a
     policy can pass it."""
-    train_env = make_eval_env(cfg, run.scenarios, "train", device)
-    if not getattr(train_env.action_fn, "invertible", True):
-        train_env = make_eval_env(plain_action(cfg), run.scenarios, "train", device)
-    flown = evaluate(train_env, make_scripted_policy(REFERENCE[run.role], train_env))
+    flown = fly_reference(cfg, run, "train", device)
     failed = torch.zeros(len(run.scenarios.split("train")), dtype=torch.bool)
     lost = ~flown.captured if run.role == "attacker" else flown.captured  # a defender is caught
     failed[flown.scenario_index.cpu()] = lost.cpu()
