@@ -1,8 +1,10 @@
 """How good can a guidance law get on a scenario set: a grid of proportional-navigation laws.
 
-Flies every law of a grid (gain x lead x longest prediction, :class:`ProportionalNavigation`;
-lead 0 is pure pursuit) over the validation and the test split of the configured set, on the
-run's plain velocity action, and prints one markdown table:
+Flies every law of a grid (gain x lead x longest prediction x acceleration lead,
+:class:`ProportionalNavigation`; lead 0 is pure pursuit, an acceleration lead above 0 the
+augmented law that aims with the target's velocity ``v + accel_lead * a``) over the validation
+and the test split of the configured set, on the run's plain velocity action, and prints one
+markdown table:
 
 - each law's capture rate on both splits, overall and per defender strategy (``setpoints``:
   the defender flies its route; ``nn``: the defender network reacts to the attacker);
@@ -15,7 +17,7 @@ run's plain velocity action, and prints one markdown table:
   defined.
 
     .venv/bin/python benchmarks/guidance_laws.py [overrides ...] [--gains 1 2 5] \
-        [--leads 0.5 0.75 1 1.5] [--horizons 4 8 16]
+        [--leads 0.5 0.75 1 1.5] [--horizons 4 8 16] [--accel-leads 0 0.9]
 
 Overrides are ``train.py``'s (e.g. ``scenarios_dir=DIR``, ``scenario=pursuit_2v1``). About 10 s
 per law on one CPU thread for the default set (2,000 validation and 500 test scenarios).
@@ -39,10 +41,15 @@ from rlplat.scenarios import STRATEGIES
 SPLITS = ("val", "test")
 
 
-def captures(env, gain: float, lead: float, horizon: float) -> torch.Tensor:
+def captures(env, gain: float, lead: float, horizon: float, accel: float) -> torch.Tensor:
     """(E,) bool per scenario of ``env``'s split: captured by the law."""
     law = make_scripted_policy(
-        "proportional_navigation", env, gain=gain, lead=lead, max_lead_time=horizon
+        "proportional_navigation",
+        env,
+        gain=gain,
+        lead=lead,
+        max_lead_time=horizon,
+        accel_lead=accel,
     )
     result = evaluate(env, law)
     out = torch.zeros(len(env.scenarios), dtype=torch.bool)
@@ -62,6 +69,7 @@ def main() -> None:
     parser.add_argument("--gains", type=float, nargs="+", default=[1.0, 2.0, 5.0])
     parser.add_argument("--leads", type=float, nargs="+", default=[0.5, 0.75, 1.0, 1.5])
     parser.add_argument("--horizons", type=float, nargs="+", default=[4.0, 8.0, 16.0])
+    parser.add_argument("--accel-leads", type=float, nargs="+", default=[0.0])
     args = parser.parse_args()
     torch.set_num_threads(1)
 
@@ -75,29 +83,29 @@ def main() -> None:
         strategy = scenarios.split(split)["defender_strategy"]
         network[split] = (strategy == STRATEGIES.index("nn")).any(-1)
 
-    default = (float(cfg.env.pursuit_gain), 0.5, 4.0)
-    laws = [default] + [
-        law for law in itertools.product(args.gains, args.leads, args.horizons) if law != default
-    ]
+    default = (float(cfg.env.pursuit_gain), 0.5, 4.0, 0.0)
+    grid = itertools.product(args.gains, args.leads, args.horizons, args.accel_leads)
+    laws = [default] + [law for law in grid if law != default]
     table = {law: {s: captures(envs[s], *law) for s in SPLITS} for law in laws}
 
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
                             text=True).stdout.strip()  # fmt: skip
     print(f"commit {commit}; {len(laws)} laws; scenario set {scenarios.digest[:12]}; "
           f"capture rate: all | setpoints | nn\n")  # fmt: skip
-    print("| gain [1/s] | lead | longest prediction [s] | validation: all | setpoints | nn "
-          "| test: all | setpoints | nn |")  # fmt: skip
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| gain [1/s] | lead | longest prediction [s] | acceleration lead [s] "
+          "| validation: all | setpoints | nn | test: all | setpoints | nn |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for law, caps in table.items():
         tag = " (the default law)" if law == default else ""
         print(
-            f"| {law[0]:g} | {law[1]:g} | {law[2]:g}{tag} | "
+            f"| {law[0]:g} | {law[1]:g} | {law[2]:g} | {law[3]:g}{tag} | "
             f"{rates(caps['val'], network['val'])} | {rates(caps['test'], network['test'])} |"
         )
 
     best = max(laws, key=lambda law: table[law]["val"].float().mean().item())
     print(f"\nChosen on validation: gain {best[0]:g}, lead {best[1]:g}, longest prediction "
-          f"{best[2]:g} s; on test: {rates(table[best]['test'], network['test'])}")  # fmt: skip
+          f"{best[2]:g} s, acceleration lead {best[3]:g} s; "
+          f"on test: {rates(table[best]['test'], network['test'])}")  # fmt: skip
     for split in SPLITS:
         union = torch.stack([table[law][split] for law in laws]).any(0)
         ceiling = split_ceiling(cfg, cfg, envs[split], scenarios, split, "cpu")

@@ -57,6 +57,7 @@ def test_registries_match_config_groups():
         "attacker_v4",
         "attacker_v5",
         "attacker_v6",
+        "attacker_v7",
         "defender_v1",
     }
 

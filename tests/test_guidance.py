@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from rlplat import make_env
-from rlplat.agents.policies import make_scripted_policy
+from rlplat.agents.policies import ProportionalNavigation, make_scripted_policy
 from rlplat.envs.dynamics import VelocityDynamics
 from rlplat.errors import ConfigError
 from rlplat.eval.ceiling import intercept_ceiling
@@ -16,11 +16,15 @@ GUIDED = "action=guided_velocity"
 PLAIN = "drone=attacker_v3"  # eq. 1 and 2: the plain velocity action
 
 
-def test_a_zero_correction_flies_proportional_navigation(scenarios):
+@pytest.mark.parametrize("accel_lead", [0.0, 0.9])
+def test_a_zero_correction_flies_proportional_navigation(scenarios, accel_lead):
     n = len(scenarios.split("val"))
     plain = make_env(PLAIN, scenarios=scenarios, num_envs=n, split="val")
-    guided = make_env(PLAIN, GUIDED, scenarios=scenarios, num_envs=n, split="val")
-    pn = make_scripted_policy("proportional_navigation", plain)
+    guided = make_env(
+        PLAIN, GUIDED, f"action.accel_lead={accel_lead}", scenarios=scenarios, num_envs=n,
+        split="val",
+    )  # fmt: skip
+    pn = make_scripted_policy("proportional_navigation", plain, accel_lead=accel_lead)
     a, b = plain.reset(), guided.reset()
     for _ in range(30):
         a = plain.step(pn(a))["next"]
@@ -33,7 +37,7 @@ def test_the_correction_moves_the_command_by_scale_times_the_action(scenarios):
     env = make_env(GUIDED, "action.scale=2", scenarios=scenarios, num_envs=4, split="val")
     td = env.reset()
     p, v = env.dynamics.position, env.dynamics.velocity
-    guidance = env.guidance(p, v)[:, 0]  # (N, 3)
+    guidance = env.guidance(p, v, torch.zeros_like(v))[:, 0]  # (N, 3)
     action = torch.tensor([[0.1, -0.2, 0.0]]).expand(4, 3)
     speed = td["max_speed"][:, 0]
     command = env.action_fn(action.unsqueeze(1), speed.unsqueeze(1), guidance.unsqueeze(1))[:, 0]
@@ -61,7 +65,42 @@ def test_a_guided_action_refuses_a_defender_learner(scenarios):
         make_env("drone=defender_v1", GUIDED, scenarios=scenarios)
 
 
-@pytest.mark.parametrize("key,value", [("scale", 0), ("lead", -1), ("gain", -2)])
+def test_the_env_reports_each_drones_acceleration_over_the_last_control_period(scenarios):
+    env = make_env(PLAIN, scenarios=scenarios, num_envs=4, split="val")
+    td = env.reset()
+    assert td["accelerations"].shape == (4, 2, 3) and not td["accelerations"].any()
+    pn = make_scripted_policy("proportional_navigation", env)
+    for _ in range(5):
+        before = td["velocities"]
+        td = env.step(pn(td))["next"]
+        expected = (td["velocities"] - before) / env.control_period
+        torch.testing.assert_close(td["accelerations"], expected)
+    assert td["accelerations"].abs().amax() > 0.1  # both drones speed up from rest
+    env.check_env_specs()
+
+
+def test_the_augmented_law_aims_with_the_velocity_the_target_turns_to(scenarios):
+    # The target flies 1 m/s along +y and accelerates at 2 m/s^2 along -y: under a 0.5-s
+    # acceleration lead the law aims as at a target flying v + 0.5 a = 0 along y.
+    own = ProportionalNavigation(gain=1.0, learner="attacker", attackers=1, defenders=1,
+                                 team=False, accel_lead=0.5)  # fmt: skip
+    assert own.in_keys[-1] == "accelerations"
+    positions = torch.tensor([[[0.0, 0.0, 10.0], [10.0, 0.0, 10.0]]])
+    velocities = torch.tensor([[[0.0, 0.0, 0.0], [0.0, 1.0, 0.0]]])
+    accelerations = torch.tensor([[[0.0, 0.0, 0.0], [0.0, -2.0, 0.0]]])
+    speeds, caught = torch.tensor([[5.0, 2.0]]), torch.zeros(1, 1, dtype=torch.bool)
+    action = own(positions, velocities, speeds, caught, accelerations)
+    torch.testing.assert_close(action, torch.tensor([[1.0, 0.0, 0.0]]))
+    textbook = ProportionalNavigation(gain=1.0, learner="attacker", attackers=1, defenders=1,
+                                      team=False)  # fmt: skip
+    assert textbook(positions, velocities, speeds, caught)[0, 1] > 0  # leads along +y
+    with pytest.raises(ValueError, match="accel_lead > 0 needs accelerations"):
+        own(positions, velocities, speeds, caught)
+
+
+@pytest.mark.parametrize(
+    "key,value", [("scale", 0), ("lead", -1), ("gain", -2), ("accel_lead", -0.5)]
+)
 def test_a_guided_action_refuses_bad_knobs(scenarios, key, value):
     with pytest.raises(ConfigError, match=f"action.{key}"):
         make_env(GUIDED, f"action.{key}={value}", scenarios=scenarios)
@@ -92,6 +131,39 @@ def test_a_law_action_flies_the_law_it_sets(scenarios, action, law):
         torch.testing.assert_close(a["positions"], b["positions"], rtol=0, atol=1e-4)
 
 
+def test_an_augmented_law_action_flies_the_augmented_law(scenarios):
+    n = len(scenarios.split("val"))
+    plain = make_env(PLAIN, scenarios=scenarios, num_envs=n, split="val")
+    learned = make_env(PLAIN, LAW, "action.accel_lead=0.9", scenarios=scenarios, num_envs=n,
+                       split="val")  # fmt: skip
+    pn = make_scripted_policy("proportional_navigation", plain, accel_lead=0.9, lead=0.75)
+    a, b = plain.reset(), learned.reset()
+    for _ in range(30):
+        a = plain.step(pn(a))["next"]
+        b = learned.step(b.set("action", torch.tensor([0.0, 0.5, 0.0]).expand(n, 3)))["next"]
+        torch.testing.assert_close(a["positions"], b["positions"], rtol=0, atol=1e-4)
+    textbook = make_env(PLAIN, LAW, scenarios=scenarios, num_envs=n, split="val")
+    c = textbook.reset()
+    for _ in range(30):
+        c = textbook.step(c.set("action", torch.tensor([0.0, 0.5, 0.0]).expand(n, 3)))["next"]
+    assert (c["positions"] - b["positions"]).abs().amax() > 0.01  # the term changes the flight
+
+
+@pytest.mark.parametrize("a3,accel_lead", [(-1.0, 0.0), (0.0, 0.9), (0.5, 1.35)])
+def test_a_fourth_component_sets_the_acceleration_lead(scenarios, a3, accel_lead):
+    n = len(scenarios.split("val"))
+    plain = make_env(PLAIN, scenarios=scenarios, num_envs=n, split="val")
+    learned = make_env(PLAIN, LAW, "action.accel_lead=0.9", "action.accel_reach=0.9",
+                       scenarios=scenarios, num_envs=n, split="val")  # fmt: skip
+    assert learned.full_action_spec["action"].shape == (n, 4)
+    pn = make_scripted_policy("proportional_navigation", plain, accel_lead=accel_lead)
+    a, b = plain.reset(), learned.reset()
+    for _ in range(30):
+        a = plain.step(pn(a))["next"]
+        b = learned.step(b.set("action", torch.tensor([0.0, 0.0, 0.0, a3]).expand(n, 4)))["next"]
+        torch.testing.assert_close(a["positions"], b["positions"], rtol=0, atol=1e-4)
+
+
 def test_a_law_action_flies_no_scripted_policy(scenarios):
     env = make_env(PLAIN, LAW, scenarios=scenarios, num_envs=4, split="val")
     with pytest.raises(ConfigError, match="pure_pursuit cannot be flown through action=guidance"):
@@ -104,7 +176,9 @@ def test_a_law_action_flies_no_scripted_policy(scenarios):
         validate_train_config(compose_config("train", [LAW]))  # attacker_v4's scripted start
 
 
-@pytest.mark.parametrize("key,value", [("gain_factor", 1), ("lead_reach", -0.1)])
+@pytest.mark.parametrize(
+    "key,value", [("gain_factor", 1), ("lead_reach", -0.1), ("accel_reach", -0.1)]
+)
 def test_a_law_action_refuses_bad_knobs(scenarios, key, value):
     with pytest.raises(ConfigError, match=f"action.{key}"):
         make_env(LAW, f"action.{key}={value}", scenarios=scenarios)

@@ -117,24 +117,46 @@ class ProportionalNavigation(_Scripted):
         gain: 1/s, command per metre to the aim point (``env.pursuit_gain``).
         lead: fraction of the predicted target motion to lead by (0 = pure pursuit).
         max_lead_time: s, longest prediction.
+        accel_lead: s, aim with the target's velocity ``v + accel_lead * a`` (its acceleration
+            over the last control period; augmented proportional navigation); 0, the default,
+            is the textbook law.
     """
 
-    in_keys = ("positions", "velocities", "max_speed", "caught")
+    in_keys: tuple[str, ...] = ("positions", "velocities", "max_speed", "caught")
 
     def __init__(
-        self, *, gain: float, lead: float = 0.5, max_lead_time: float = 4.0, **drones: Any
+        self,
+        *,
+        gain: float,
+        lead: float = 0.5,
+        max_lead_time: float = 4.0,
+        accel_lead: float = 0.0,
+        **drones: Any,
     ) -> None:
         super().__init__(**drones)
-        if not max_lead_time >= 0:
-            raise ConfigError(f"max_lead_time: must be >= 0, got {max_lead_time}")
+        for name, v in (("max_lead_time", max_lead_time), ("accel_lead", accel_lead)):
+            if not v >= 0:
+                raise ConfigError(f"{name}: must be >= 0, got {v}")
         self.gain, self.lead, self.max_lead_time = float(gain), float(lead), float(max_lead_time)
+        self.accel_lead = float(accel_lead)
+        if self.accel_lead:  # the augmented law reads the accelerations too
+            self.in_keys = (*self.in_keys, "accelerations")
 
     def forward(
-        self, positions: Tensor, velocities: Tensor, max_speed: Tensor, caught: Tensor
+        self,
+        positions: Tensor,
+        velocities: Tensor,
+        max_speed: Tensor,
+        caught: Tensor,
+        accelerations: Tensor | None = None,
     ) -> Tensor:
         own, speed, near = self._nearest(positions, max_speed, caught)
         rel = gather_drones(positions[:, self.others], near) - own
         v_other = gather_drones(velocities[:, self.others], near)
+        if self.accel_lead:
+            if accelerations is None:
+                raise ValueError("proportional_navigation: accel_lead > 0 needs accelerations")
+            v_other = v_other + self.accel_lead * gather_drones(accelerations[:, self.others], near)
         action = intercept_action(rel, v_other, speed, self.gain, self.lead, self.max_lead_time)
         return self._action(action)
 
@@ -235,6 +257,7 @@ class Unguided(nn.Module):
             gain=self.action.gain,
             lead=self.action.lead,
             max_lead_time=self.action.max_lead_time,
+            accel_lead=self.action.accel_lead,
             learner=policy.learner,
             attackers=env.num_attackers,
             defenders=env.num_defenders,

@@ -293,28 +293,53 @@ class GuidedVelocityAction(VelocityAction):
         lead: fraction of the target's predicted motion the guidance leads by.
         max_lead_time: s, the guidance's longest prediction.
         scale: the correction's reach, in units of the maximum speed per axis.
+        accel_lead: s, the guidance predicts the target's velocity this far ahead at its
+            acceleration over the last control period, ``v_other + accel_lead * a_other``
+            (augmented proportional navigation: a target whose velocity lags its command by a
+            first-order time constant tau is flying towards ``v + tau * a``); 0 is the textbook
+            law.
     """
 
     guided = True
     invertible = True  # inverse() gives the action that flies any command
 
     def __init__(
-        self, *, gain: float = 5.0, lead: float = 0.5, max_lead_time: float = 4.0, scale=2.0
+        self,
+        *,
+        gain: float = 5.0,
+        lead: float = 0.5,
+        max_lead_time: float = 4.0,
+        scale: float = 2.0,
+        accel_lead: float = 0.0,
     ) -> None:
         for name, v in (("gain", gain), ("scale", scale)):
             if not v > 0:
                 raise ConfigError(f"action.{name}: must be > 0, got {v}")
-        for name, v in (("lead", lead), ("max_lead_time", max_lead_time)):
+        for name, v in (
+            ("lead", lead),
+            ("max_lead_time", max_lead_time),
+            ("accel_lead", accel_lead),
+        ):
             if not v >= 0:
                 raise ConfigError(f"action.{name}: must be >= 0, got {v}")
         self.gain, self.lead = float(gain), float(lead)
         self.max_lead_time, self.scale = float(max_lead_time), float(scale)
+        self.accel_lead = float(accel_lead)
 
-    def guidance(self, rel: Tensor, v_other: Tensor, max_speed: Tensor) -> Tensor:
+    def predicted_velocity(self, v_other: Tensor, a_other: Tensor | None) -> Tensor:
+        """The target velocity the law aims with: ``v_other + accel_lead * a_other``."""
+        if a_other is None or self.accel_lead == 0.0:
+            return v_other
+        return v_other + self.accel_lead * a_other
+
+    def guidance(
+        self, rel: Tensor, v_other: Tensor, max_speed: Tensor, a_other: Tensor | None = None
+    ) -> Tensor:
         """Guidance action (*B, 3) in [-1, 1] for targets at ``rel`` (*B, 3) m moving at
-        ``v_other`` (*B, 3) m/s, pursuers of ``max_speed`` (*B,) m/s."""
-        speed = max_speed.unsqueeze(-1)
-        return intercept_action(rel, v_other, speed, self.gain, self.lead, self.max_lead_time)
+        ``v_other`` (*B, 3) m/s and accelerating at ``a_other`` (*B, 3) m/s^2 (None: not
+        known, the textbook law), pursuers of ``max_speed`` (*B,) m/s."""
+        speed, v = max_speed.unsqueeze(-1), self.predicted_velocity(v_other, a_other)
+        return intercept_action(rel, v, speed, self.gain, self.lead, self.max_lead_time)
 
     def __call__(self, action: Tensor, max_speed: Tensor, guidance: Tensor | None = None) -> Tensor:
         if guidance is None:
@@ -343,6 +368,7 @@ class GuidedVelocityAction(VelocityAction):
             "gain": self.gain,
             "lead": self.lead,
             "max_lead_time": self.max_lead_time,
+            "accel_lead": self.accel_lead,
         }
 
     def describe(self) -> list[str]:
@@ -352,6 +378,21 @@ class GuidedVelocityAction(VelocityAction):
             f"velocity command is clamp(pn + {self.scale:g} * action, -1, 1) x max speed per axis,",
             f"pn the law's action (gain {self.gain:g}/s, lead {self.lead:g}, max lead time "
             f"{self.max_lead_time:g} s; rlplat.envs.kinematics.intercept_action).",
+            *self._describe_accel(),
+        ]
+
+    def _describe_accel(self) -> list[str]:
+        if getattr(self, "dim", 3) == 4:
+            return [
+                f"The law aims with the target's velocity v + max({self.accel_lead:g} + "
+                f"{self.accel_reach:g} * a3, 0) s * a, a its mean",
+                "acceleration over the last control period (augmented proportional navigation).",
+            ]
+        if self.accel_lead == 0.0:
+            return []
+        return [
+            f"The law aims with the target's velocity v + {self.accel_lead:g} s * a, a its mean",
+            "acceleration over the last control period (augmented proportional navigation).",
         ]
 
 
@@ -367,9 +408,14 @@ class GuidanceLawAction(GuidedVelocityAction):
 
     Args:
         gain, lead, max_lead_time: the law of the zero action.
+        accel_lead: s, as for :class:`GuidedVelocityAction`: every law of the family aims
+            with the target's velocity ``accel_lead`` seconds ahead at its acceleration.
         gain_factor: > 1, the gain's range is [gain / factor, gain * factor].
         lead_reach: >= 0, the lead's range is lead ± reach (clipped at 0).
         horizon_factor: > 1, the longest prediction's range, as for the gain.
+        accel_reach: >= 0; above 0 the action has a fourth component that sets the
+            acceleration lead too, ``accel_lead + accel_reach * a3`` (at least 0), so the
+            policy chooses where to trust the target's acceleration.
     """
 
     name = "guidance_law"
@@ -386,19 +432,31 @@ class GuidanceLawAction(GuidedVelocityAction):
         gain_factor: float = 5.0,
         lead_reach: float = 0.5,
         horizon_factor: float = 4.0,
+        accel_lead: float = 0.0,
+        accel_reach: float = 0.0,
     ) -> None:
-        super().__init__(gain=gain, lead=lead, max_lead_time=max_lead_time)
+        super().__init__(gain=gain, lead=lead, max_lead_time=max_lead_time, accel_lead=accel_lead)
         for name, v in (("gain_factor", gain_factor), ("horizon_factor", horizon_factor)):
             if not v > 1:
                 raise ConfigError(f"action.{name}: must be > 1, got {v}")
-        if not lead_reach >= 0:
-            raise ConfigError(f"action.lead_reach: must be >= 0, got {lead_reach}")
+        for name, v in (("lead_reach", lead_reach), ("accel_reach", accel_reach)):
+            if not v >= 0:
+                raise ConfigError(f"action.{name}: must be >= 0, got {v}")
         self.gain_factor, self.lead_reach = float(gain_factor), float(lead_reach)
-        self.horizon_factor = float(horizon_factor)
+        self.horizon_factor, self.accel_reach = float(horizon_factor), float(accel_reach)
+        self.dim = 4 if self.accel_reach > 0 else 3
 
-    def guidance(self, rel: Tensor, v_other: Tensor, max_speed: Tensor) -> Tensor:
-        """The geometry the law needs, (*B, 7): target offset, its velocity, the max speed."""
-        return torch.cat([rel, v_other, max_speed.unsqueeze(-1)], -1)
+    def guidance(
+        self, rel: Tensor, v_other: Tensor, max_speed: Tensor, a_other: Tensor | None = None
+    ) -> Tensor:
+        """The geometry the law needs: target offset, the velocity the law aims with
+        (:meth:`predicted_velocity`) and the max speed, (*B, 7); with a learned acceleration
+        lead the target's velocity, its acceleration and the max speed, (*B, 10)."""
+        if self.dim == 3:
+            v = self.predicted_velocity(v_other, a_other)
+            return torch.cat([rel, v, max_speed.unsqueeze(-1)], -1)
+        a = torch.zeros_like(v_other) if a_other is None else a_other
+        return torch.cat([rel, v_other, a, max_speed.unsqueeze(-1)], -1)
 
     def __call__(self, action: Tensor, max_speed: Tensor, guidance: Tensor | None = None) -> Tensor:
         """The law's command (*B, 3) m/s for the parameters ``action`` sets; the speed limit is
@@ -406,7 +464,9 @@ class GuidanceLawAction(GuidedVelocityAction):
         if guidance is None:
             raise ValueError("action: a guided action needs the guidance action")
         gain, lead, horizon = self.law(action)
-        rel, v_other, speed = guidance[..., :3], guidance[..., 3:6], guidance[..., 6:7]
+        rel, v_other, speed = guidance[..., :3], guidance[..., 3:6], guidance[..., -1:]
+        if self.dim == 4:
+            v_other = v_other + self.accel(action) * guidance[..., 6:9]
         return intercept_action(rel, v_other, speed, gain, lead, horizon) * speed
 
     def inverse(self, flown: Tensor, guidance: Tensor) -> Tensor:
@@ -422,18 +482,30 @@ class GuidanceLawAction(GuidedVelocityAction):
         lead = (self.lead + self.lead_reach * a[..., 1:2]).clamp_min(0.0)
         return gain, lead, self.max_lead_time * self.horizon_factor ** a[..., 2:3]
 
+    def accel(self, action: Tensor) -> Tensor:
+        """The acceleration lead (*B, 1) s that ``action`` (*B, 4) sets."""
+        a3 = action[..., 3:4].clamp(-1.0, 1.0)
+        return (self.accel_lead + self.accel_reach * a3).clamp_min(0.0)
+
     def card(self) -> dict[str, Any]:
+        learned = self.dim == 4
         return {
-            "features": ["log_gain", "lead", "log_max_lead_time"],
+            "features": ["log_gain", "lead", "log_max_lead_time"] + ["accel_lead"] * learned,
             "unit": "1: the parameters of proportional navigation, flown by the env: gain = "
             f"{self.gain:g} * {self.gain_factor:g}^a0 1/s, lead = max({self.lead:g} + "
             f"{self.lead_reach:g} * a1, 0), max lead time = {self.max_lead_time:g} * "
-            f"{self.horizon_factor:g}^a2 s",
+            f"{self.horizon_factor:g}^a2 s"
+            + (
+                f", acceleration lead = max({self.accel_lead:g} + {self.accel_reach:g} * a3, 0) s"
+                if learned
+                else ""
+            ),
             "guidance": {
                 **self._law_card(),
                 "gain_factor": self.gain_factor,
                 "lead_reach": self.lead_reach,
                 "horizon_factor": self.horizon_factor,
+                "accel_reach": self.accel_reach,
             },
         }
 
@@ -443,6 +515,7 @@ class GuidanceLawAction(GuidedVelocityAction):
             f"flies the law: gain {self.gain:g} * {self.gain_factor:g}^a0 1/s, lead max("
             f"{self.lead:g} + {self.lead_reach:g} * a1, 0), max lead time {self.max_lead_time:g}"
             f" * {self.horizon_factor:g}^a2 s (rlplat.envs.kinematics.intercept_action).",
+            *self._describe_accel(),
         ]
 
 

@@ -273,6 +273,8 @@ class PursuitEnv(EnvBase):
         self.nn_defender = torch.zeros(num_envs, m, dtype=torch.bool, device=self.device)
         self.caught = torch.zeros(num_envs, m, dtype=torch.bool, device=self.device)
         self.max_speed = torch.ones(num_envs, k + m, device=self.device)
+        # Each drone's mean acceleration over the last control period (m/s^2).
+        self.acceleration = torch.zeros(num_envs, k + m, 3, device=self.device)
         self._make_specs(num_envs)
 
     def close(self, *, raise_if_closed: bool = True) -> None:
@@ -320,6 +322,7 @@ class PursuitEnv(EnvBase):
             caught=flag(m),
             positions=real(self.num_attackers + m, 3),
             velocities=real(self.num_attackers + m, 3),
+            accelerations=real(self.num_attackers + m, 3),
             max_speed=real(self.num_attackers + m),
             waypoint=index(m),
             setpoints=real(m, 3),
@@ -374,6 +377,7 @@ class PursuitEnv(EnvBase):
             position = self.dynamics.position.clone()
             position[mask] = torch.cat([sc["attacker_start"], sc["defender_start"]], 1)
             self.dynamics.reset(mask, position, torch.zeros_like(position), self.max_speed.clone())
+            self.acceleration = self.acceleration.masked_fill(mask.view(n, 1, 1), 0.0)
         sight = self._sight(self._relative(self.dynamics.position))
         flag = torch.zeros(n, 1, dtype=torch.bool, device=self.device)
         out = self._outputs(
@@ -415,7 +419,7 @@ class PursuitEnv(EnvBase):
         # Command every drone: the other role by its script, the learners by the policy.
         p, v = self.dynamics.position, self.dynamics.velocity
         target, route_done = self._target()
-        guidance = self.guidance(p, v) if self._guided else None
+        guidance = self.guidance(p, v, self.acceleration) if self._guided else None
         own = self.action_fn(action.reshape(n, t, -1), self.max_speed[:, self.team], guidance)
         if self.learner == ATTACKER:
             attack, defend = own, self._defender_command(p, v, target, route_done)
@@ -427,6 +431,7 @@ class PursuitEnv(EnvBase):
         to_target = (target - p[:, self.defenders]).norm(dim=-1)
         self.dynamics.advance(torch.cat([attack, defend], 1), self.control_period)
         p = self.dynamics.position
+        self.acceleration = (self.dynamics.velocity - v) / self.control_period
         self.step_count = self.step_count + 1
         # A defender moves on once it is within the acceptance radius of its setpoint.
         to_target_after = (target - p[:, self.defenders]).norm(dim=-1)
@@ -491,17 +496,19 @@ class PursuitEnv(EnvBase):
         last = self.routes.shape[1] - 1
         return self.routes[self.route, self.waypoint.clamp(max=last)], self.waypoint > last
 
-    def guidance(self, p: Tensor, v: Tensor) -> Tensor:
+    def guidance(self, p: Tensor, v: Tensor, a: Tensor) -> Tensor:
         """A guided action's guidance for each attacker (N, k, 3): proportional navigation
-        towards its nearest defender in play, from positions p and velocities v (N, k + m, 3)."""
+        towards its nearest defender in play, from positions p, velocities v and accelerations
+        a (N, k + m, 3)."""
         own, defenders = p[:, self.attackers], p[:, self.defenders]
         if self.num_defenders == 1:  # every attacker's nearest: the one defender
-            rel, v_other = defenders - own, v[:, self.defenders].expand_as(own)
+            rel = defenders - own
+            v_other, a_other = (x[:, self.defenders].expand_as(own) for x in (v, a))
         else:
             near = nearest(own, defenders, targets(self.caught))
             rel = gather_drones(defenders, near) - own
-            v_other = gather_drones(v[:, self.defenders], near)
-        return self.action_fn.guidance(rel, v_other, self.max_speed[:, self.attackers])
+            v_other, a_other = (gather_drones(x[:, self.defenders], near) for x in (v, a))
+        return self.action_fn.guidance(rel, v_other, self.max_speed[:, self.attackers], a_other)
 
     def _relative(self, p: Tensor) -> Tensor:
         """Defender minus attacker position for every pair: (N, k, m, 3)."""
@@ -581,6 +588,7 @@ class PursuitEnv(EnvBase):
             "caught": self.caught.clone(),
             "positions": p,
             "velocities": v,
+            "accelerations": self.acceleration,
             "max_speed": self.max_speed.clone(),
             "waypoint": self.waypoint.clone(),
             "setpoints": target,

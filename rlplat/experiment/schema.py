@@ -250,6 +250,8 @@ ACTION_KNOBS: dict[str, Rule] = {
     "gain_factor": Num(gt=1),
     "lead_reach": NON_NEGATIVE,
     "horizon_factor": Num(gt=1),
+    "accel_lead": NON_NEGATIVE,
+    "accel_reach": NON_NEGATIVE,
 }
 #: Component groups: registry, knob rules, and the arguments the env factory passes itself.
 COMPONENTS: dict[str, tuple[Mapping[str, Any], Mapping[str, Rule], tuple[str, ...]]] = {
@@ -560,6 +562,8 @@ def check_resume(saved: Mapping[str, Any], current: Mapping[str, Any]) -> None:
     def value(flat: dict[str, Any], key: str) -> str:
         return "absent" if key not in flat else show(flat[key], limit=40)
 
+    # The choices (``drone.name``, ``action.name``, ...) first: they say the most.
+    keys = sorted(keys, key=lambda k: (not k.endswith(".name"), k))
     shown = [f"{k} ({value(a, k)} -> {value(b, k)})" for k in keys[:10]]
     more = f" and {len(keys) - 10} more" if len(keys) > 10 else ""
     raise ConfigError(
