@@ -308,6 +308,19 @@ def test_check_resume_refuses_a_changed_config_in_one_line():
     assert "\n" not in message
 
 
+def test_a_run_saved_before_a_key_existed_resumes_with_its_neutral_value():
+    from rlplat.experiment.schema import ADDED_KEYS
+
+    saved = resolved("drone=attacker_v6")
+    del saved["algo"]["failure_weight"], saved["action"]["accel_lead"]
+    del saved["action"]["accel_reach"]
+    assert {"algo.failure_weight", "action.accel_lead", "action.accel_reach"} <= set(ADDED_KEYS)
+    check_resume(saved, resolved("drone=attacker_v6", "resume=true"))
+    # Any other value is a change, named as one.
+    with pytest.raises(ConfigError, match=r"action\.accel_lead \(absent -> 0\.9\)"):
+        check_resume(saved, resolved("drone=attacker_v7", "resume=true"))
+
+
 def test_check_resume_names_added_and_removed_keys():
     saved = resolved()
     current = resolved("+reward.terms.proximity=-1.0", "~reward.terms.in_view_step")

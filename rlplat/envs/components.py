@@ -382,12 +382,7 @@ class GuidedVelocityAction(VelocityAction):
         ]
 
     def _describe_accel(self) -> list[str]:
-        if getattr(self, "dim", 3) == 4:
-            return [
-                f"The law aims with the target's velocity v + max({self.accel_lead:g} + "
-                f"{self.accel_reach:g} * a3, 0) s * a, a its mean",
-                "acceleration over the last control period (augmented proportional navigation).",
-            ]
+        """The acceleration lead's lines of :meth:`describe` (none for the textbook law)."""
         if self.accel_lead == 0.0:
             return []
         return [
@@ -481,6 +476,15 @@ class GuidanceLawAction(GuidedVelocityAction):
         gain = self.gain * self.gain_factor ** a[..., 0:1]
         lead = (self.lead + self.lead_reach * a[..., 1:2]).clamp_min(0.0)
         return gain, lead, self.max_lead_time * self.horizon_factor ** a[..., 2:3]
+
+    def _describe_accel(self) -> list[str]:
+        if self.dim == 3:
+            return super()._describe_accel()
+        return [
+            f"The law aims with the target's velocity v + max({self.accel_lead:g} + "
+            f"{self.accel_reach:g} * a3, 0) s * a, a its mean",
+            "acceleration over the last control period (augmented proportional navigation).",
+        ]
 
     def accel(self, action: Tensor) -> Tensor:
         """The acceleration lead (*B, 1) s that ``action`` (*B, 4) sets."""

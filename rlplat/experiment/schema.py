@@ -511,6 +511,15 @@ RESUME_FREE: tuple[str, ...] = (
 )
 
 
+#: Keys added to the config after runs were saved, with the value that flies as those runs
+#: flew: a saved config without such a key, resumed with that value, is the same config.
+ADDED_KEYS: dict[str, Any] = {
+    "algo.failure_weight": 1.0,
+    "action.accel_lead": 0.0,
+    "action.accel_reach": 0.0,
+}
+
+
 def _flat(node: Any, prefix: str = "") -> dict[str, Any]:
     if isinstance(node, (DictConfig, ListConfig)):
         node = OmegaConf.to_container(node, resolve=True)
@@ -540,9 +549,11 @@ def config_diff(
     saved: Mapping[str, Any], current: Mapping[str, Any], ignore: Iterable[str] = RESUME_FREE
 ) -> list[str]:
     """Dotted keys whose values differ between two resolved configs (added, removed or
-    changed; a list is one value), but for those ``ignore`` matches (``RESUME_FREE``), sorted."""
+    changed; a list is one value), but for those ``ignore`` matches (``RESUME_FREE``), sorted.
+    A key of ``ADDED_KEYS`` that the saved config lacks counts as saved with its value."""
     ignore = tuple(ignore)
     a, b = _flat(saved), _flat(current)
+    a.update({k: v for k, v in ADDED_KEYS.items() if k not in a and k in b})
     keys = (k for k in a.keys() | b.keys() if not _ignored(k, ignore))
     return sorted(k for k in keys if not _same(a.get(k, MISSING), b.get(k, MISSING)))
 
