@@ -37,7 +37,7 @@ def test_the_correction_moves_the_command_by_scale_times_the_action(scenarios):
     env = make_env(GUIDED, "action.scale=2", scenarios=scenarios, num_envs=4, split="val")
     td = env.reset()
     p, v = env.dynamics.position, env.dynamics.velocity
-    guidance = env.guidance(p, v, torch.zeros_like(v))[:, 0]  # (N, 3)
+    guidance = env.guidance(p, v)[:, 0]  # (N, 3)
     action = torch.tensor([[0.1, -0.2, 0.0]]).expand(4, 3)
     speed = td["max_speed"][:, 0]
     command = env.action_fn(action.unsqueeze(1), speed.unsqueeze(1), guidance.unsqueeze(1))[:, 0]
@@ -162,6 +162,26 @@ def test_a_fourth_component_sets_the_acceleration_lead(scenarios, a3, accel_lead
         a = plain.step(pn(a))["next"]
         b = learned.step(b.set("action", torch.tensor([0.0, 0.0, 0.0, a3]).expand(n, 4)))["next"]
         torch.testing.assert_close(a["positions"], b["positions"], rtol=0, atol=1e-4)
+
+
+def test_a_team_flies_the_augmented_law_at_each_attackers_nearest_defender(
+    tmp_path, write_small_set
+):
+    teams = write_small_set(tmp_path / "2v2", "scenario.attackers=2", "scenario.defenders=2")
+    n = len(teams.split("val"))
+    plain = make_env(PLAIN, scenarios=teams, num_envs=n, split="val")
+    learned = make_env(PLAIN, LAW, "action.accel_lead=0.9", scenarios=teams, num_envs=n,
+                       split="val")  # fmt: skip
+    pn = make_scripted_policy("proportional_navigation", plain, accel_lead=0.9)
+    a, b = plain.reset(), learned.reset()
+    textbook = make_env(PLAIN, LAW, scenarios=teams, num_envs=n, split="val")
+    c, zero = textbook.reset(), torch.zeros(n, 2, 3)
+    for _ in range(30):
+        a = plain.step(pn(a))["next"]
+        b = learned.step(b.set(learned.action_key, zero))["next"]
+        c = textbook.step(c.set(textbook.action_key, zero))["next"]
+        torch.testing.assert_close(a["positions"], b["positions"], rtol=0, atol=1e-4)
+    assert (c["positions"] - b["positions"]).abs().amax() > 0.01  # the term changes the flight
 
 
 def test_a_law_action_flies_no_scripted_policy(scenarios):

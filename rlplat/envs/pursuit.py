@@ -496,18 +496,22 @@ class PursuitEnv(EnvBase):
         last = self.routes.shape[1] - 1
         return self.routes[self.route, self.waypoint.clamp(max=last)], self.waypoint > last
 
-    def guidance(self, p: Tensor, v: Tensor, a: Tensor) -> Tensor:
+    def guidance(self, p: Tensor, v: Tensor, a: Tensor | None = None) -> Tensor:
         """A guided action's guidance for each attacker (N, k, 3): proportional navigation
         towards its nearest defender in play, from positions p, velocities v and accelerations
-        a (N, k + m, 3)."""
+        a (N, k + m, 3; None: not known, the law leads on velocity only)."""
         own, defenders = p[:, self.attackers], p[:, self.defenders]
+        a_other = None
         if self.num_defenders == 1:  # every attacker's nearest: the one defender
-            rel = defenders - own
-            v_other, a_other = (x[:, self.defenders].expand_as(own) for x in (v, a))
+            rel, v_other = defenders - own, v[:, self.defenders].expand_as(own)
+            if a is not None:
+                a_other = a[:, self.defenders].expand_as(own)
         else:
             near = nearest(own, defenders, targets(self.caught))
             rel = gather_drones(defenders, near) - own
-            v_other, a_other = (gather_drones(x[:, self.defenders], near) for x in (v, a))
+            v_other = gather_drones(v[:, self.defenders], near)
+            if a is not None:
+                a_other = gather_drones(a[:, self.defenders], near)
         return self.action_fn.guidance(rel, v_other, self.max_speed[:, self.attackers], a_other)
 
     def _relative(self, p: Tensor) -> Tensor:
