@@ -237,6 +237,8 @@ BAD_EVALUATE = [
     (["run_dir=r", "plots=sometimes"], "plots", "'sometimes'"),
     (["run_dir=r", "compare=true", "out_dir=x"], "out_dir", "'x'"),
     (["run_dir=r", "policy=pure_pursuit", "ckpt=last"], "ckpt", "'last'"),
+    (["run_dir=r", "ensemble=r2"], "ensemble", "'r2'"),
+    (["run_dir=r", "policy=pure_pursuit", "ensemble=[r2]"], "ensemble", "policy=pure_pursuit"),
     (["run_dir=r", "+foo=1"], "foo", "valid: run_dir, policy"),
     ([], "run_dir", "???"),
 ]

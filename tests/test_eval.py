@@ -11,6 +11,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
 
 from rlplat.agents.policies import make_scripted_policy
 from rlplat.errors import ConfigError
@@ -247,6 +248,43 @@ def test_last_checkpoint_and_a_path(trained_run):
     again = evaluate_run(trained_run, ckpt=str(path), split="val", out_dir=other, plots=False)
     assert again.summary["name"] == "last" and again.summary["checkpoint"] == str(path)
     assert torch.equal(last.results.returns, again.results.returns)  # deterministic replay
+
+
+def test_an_ensemble_flies_the_mean_action_of_its_members(trained_run, tmp_path):
+    from rlplat.agents.policies import MeanAction
+
+    # Two members of constant actions: the ensemble flies their mean.
+    def constant(value):
+        return TensorDictModule(
+            lambda obs: torch.full((obs.shape[0], 3), value), ["observation"], ["action"]
+        )
+
+    td = TensorDict({"observation": torch.zeros(4, 10)}, batch_size=[4])
+    mean = MeanAction([constant(0.5), constant(-0.1)], "action")(td)["action"]
+    torch.testing.assert_close(mean, torch.full((4, 3), 0.2))
+
+    # A run and its copy: the mean of two equal actions is the run's own policy.
+    copy = tmp_path / "copy"
+    shutil.copytree(trained_run, copy, ignore=shutil.ignore_patterns("eval"))
+    alone = evaluate_run(trained_run, split="val", plots=False, trajectories=0)
+    both = evaluate_run(trained_run, split="val", plots=False, ensemble=[copy])
+    assert both.out_dir == trained_run / "eval" / "val-best-ensemble2"
+    assert both.summary["name"] == "best-ensemble2"
+    assert both.summary["ensemble"] == [str(copy / "checkpoints" / "best.pt")]
+    torch.testing.assert_close(both.results.returns, alone.results.returns)
+    assert torch.equal(both.results.captured, alone.results.captured)
+
+
+def test_an_ensemble_refuses_a_member_of_another_interface(trained_run, tmp_path):
+    other = tmp_path / "other"
+    shutil.copytree(trained_run, other, ignore=shutil.ignore_patterns("eval"))
+    cfg = OmegaConf.load(other / "config.yaml")
+    cfg.action.scale = 1.0
+    OmegaConf.save(cfg, other / "config.yaml")
+    with pytest.raises(ConfigError, match=r"ensemble: .*other has action=.*run_dir has action="):
+        evaluate_run(trained_run, split="val", plots=False, ensemble=[other])
+    with pytest.raises(ConfigError, match=r"ensemble: flies checkpoints"):
+        evaluate_run(trained_run, policy="pure_pursuit", ensemble=[other])
 
 
 # Bad input -------------------------------------------------------------------------------

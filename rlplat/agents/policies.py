@@ -23,7 +23,7 @@ from typing import Any, Literal
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModule
+from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torch import Tensor, nn
 from torchrl.data import Bounded
 
@@ -270,6 +270,30 @@ class Unguided(nn.Module):
         flown = self.policy(*(named[k] for k in self.policy.in_keys))
         guidance = self.guidance(*(named[k] for k in self.guidance.in_keys))
         return self.action.inverse(flown, guidance)
+
+
+class MeanAction(TensorDictModuleBase):
+    """An ensemble of policies that fly the same drone interface: the mean of their actions.
+
+    Each member acts on its own copy of the input entries it reads; the mean of their
+    ``action_key`` entries is written into the input. Flown by the evaluator, the members act
+    deterministically, so the ensemble is deterministic too. Averaging keeps an action inside
+    the box [-1, 1] that every member's lies in.
+    """
+
+    def __init__(self, members: list[TensorDictModuleBase], action_key) -> None:
+        super().__init__()
+        if not members:
+            raise ValueError("MeanAction: needs at least one member")
+        self.members = nn.ModuleList(members)
+        self.action_key = action_key
+        self.in_keys = list(dict.fromkeys(k for m in members for k in m.in_keys))
+        self.out_keys = [action_key]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        inputs = tensordict.select(*self.in_keys)
+        actions = [m(inputs.copy())[self.action_key] for m in self.members]
+        return tensordict.set(self.action_key, torch.stack(actions).mean(0))
 
 
 class NoisyPolicy:

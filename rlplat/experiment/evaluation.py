@@ -26,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 from rlplat.agents.checkpoint import actor_from_state, load_checkpoint, saved_interface
 from rlplat.agents.export import ARTIFACTS, observation_key
 from rlplat.agents.native import OnnxPolicy, artifact_module, build_library, find_compiler
-from rlplat.agents.policies import POLICIES, make_scripted_policy, policies_for
+from rlplat.agents.policies import POLICIES, MeanAction, make_scripted_policy, policies_for
 from rlplat.envs.dynamics import DYNAMICS
 from rlplat.envs.pursuit import ROLES, PursuitEnv
 from rlplat.errors import ConfigError
@@ -189,6 +189,7 @@ def evaluate_run(
     plots: bool = True,
     compiler: str = "cc",
     dynamics: Mapping[str, Any] | None = None,
+    ensemble: Sequence[str | Path] = (),
 ) -> Evaluation:
     """Replay every scenario of ``split`` once, deterministically, with the run's policy.
 
@@ -211,6 +212,10 @@ def evaluate_run(
         dynamics: fly on this dynamics instead of the run's: a ``conf/dynamics/`` node (e.g.
             ``airsim`` with its ``endpoints``; on AirSim the split is flown in waves, one env
             per simulator); the default ``out_dir`` then ends in ``-<dynamics name>``.
+        ensemble: more training runs of the same drone interface (observation and action
+            components); their ``ckpt`` checkpoints and ``run_dir``'s fly together, the mean
+            of their deterministic actions (:class:`rlplat.agents.policies.MeanAction`);
+            ``policy=checkpoint`` only. The name gets ``-ensemble<size>``.
     """
     # Everything is checked before any work starts.
     run_dir = Path(run_dir)
@@ -237,6 +242,9 @@ def evaluate_run(
         compiler = find_compiler(compiler)
     if files is not None:
         name = f"{name}-{policy}"
+    members = ensemble_members(cfg, policy, ckpt, ensemble)
+    if members:
+        name = f"{name}-ensemble{len(members) + 1}"
     if out_dir is None:
         suffix = f"-{cfg.dynamics.name}" if swapped else ""
         out_dir = run_dir / "eval" / f"{split}-{name}{suffix}"
@@ -264,6 +272,15 @@ def evaluate_run(
         if state is not None:
             check_policy_fits(state, cfg, env, path)
             actor = actor_from_state(state, env.drone_action_spec, device, env.group)
+            if members:
+                actors = [actor]
+                for member_path, member_cfg in members:
+                    member = load_checkpoint(member_path)
+                    check_policy_fits(member, member_cfg, env, member_path)
+                    actors.append(
+                        actor_from_state(member, env.drone_action_spec, device, env.group)
+                    )
+                actor = MeanAction(actors, env.action_key)
             if files is not None:
                 torch_actor, actor = actor, artifact_policy(policy, files, state, env, compiler)
         else:
@@ -305,6 +322,7 @@ def evaluate_run(
         "policy": policy,
         "name": name,
         "checkpoint": str(path) if path else None,
+        "ensemble": [str(p) for p, _ in members],
         "split": split,
         "run_dir": str(run_dir),
         "drone": cfg.drone.name,
@@ -326,6 +344,26 @@ def evaluate_run(
     write_report(out_dir, summary, rows, results, routes, run_dir, trajectories, plots)
     log.info("capture rate %.3f on %s; results in %s", summary["capture_rate"], split, out_dir)
     return Evaluation(rows, summary, results, out_dir)
+
+
+def ensemble_members(
+    cfg: DictConfig, policy: str, ckpt: str, runs: Sequence[str | Path]
+) -> list[tuple[Path, DictConfig]]:
+    """The checkpoint and config of each further run of an ensemble, checked against the run
+    of ``cfg``: the same learner, observation and action (what an action means)."""
+    if runs and policy != "checkpoint":
+        raise ConfigError(f"ensemble: flies checkpoints (policy=checkpoint), got policy={policy}")
+    members = []
+    for run in runs:
+        member_cfg = load_run_config(run)
+        for key in ("drone.learner", "observation", "action"):
+            mine, theirs = (OmegaConf.select(c, key) for c in (cfg, member_cfg))
+            if isinstance(mine, DictConfig):
+                mine, theirs = (OmegaConf.to_container(x, resolve=True) for x in (mine, theirs))
+            if mine != theirs:
+                raise ConfigError(f"ensemble: {run} has {key}={theirs}, run_dir has {key}={mine}")
+        members.append((checkpoint_path(Path(run), ckpt), member_cfg))
+    return members
 
 
 def plain_action(cfg: DictConfig) -> DictConfig:
@@ -383,7 +421,10 @@ def evaluate_from_config(cfg: DictConfig) -> list[str]:
         policies += [k for k in policies_for(learner) if k != cfg.policy]
     lines = []
     for policy in policies:
-        ev = evaluate_run(cfg.run_dir, policy=policy, out_dir=cfg.out_dir, **kwargs)
+        members = list(cfg.ensemble) if policy == cfg.policy else []
+        ev = evaluate_run(
+            cfg.run_dir, policy=policy, out_dir=cfg.out_dir, ensemble=members, **kwargs
+        )
         s = ev.summary
         low, high = s["capture_rate_ci95"]
         differ = (

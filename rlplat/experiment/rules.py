@@ -127,6 +127,16 @@ class Text:
         return f"must be a non-empty string{' or null' * self.null}, got {show(value)}"
 
 
+@dataclass(frozen=True)
+class TextList:
+    """A list (empty allowed) of non-empty strings, e.g. paths."""
+
+    def __call__(self, value: Any) -> str | None:
+        if isinstance(value, list) and all(isinstance(x, str) and x.strip() for x in value):
+            return None
+        return f"must be a list of non-empty strings, got {show(value)}"
+
+
 def flag(value: Any) -> str | None:
     """true or false."""
     return None if isinstance(value, bool) else f"must be true or false, got {show(value)}"

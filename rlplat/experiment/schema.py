@@ -49,6 +49,7 @@ from rlplat.experiment.rules import (
     Rule,
     Seq,
     Text,
+    TextList,
     check_table,
     device,
     flag,
@@ -277,6 +278,7 @@ EVALUATE_RULES: dict[str, Rule] = {
     "plots": flag,
     "speed_ratio_bins": Seq(POSITIVE, increasing=True),
     "compiler": Text(),
+    "ensemble": TextList(),
 }
 
 #: conf/export.yaml.
@@ -409,6 +411,10 @@ def _check_evaluate_fields(c: Mapping[str, Any]) -> None:
     if c["policy"] in SCRIPTED and c["ckpt"] != "best":
         raise ConfigError(
             f"ckpt: {show(c['ckpt'])} is for policy=checkpoint, onnx or c, got policy={c['policy']}"
+        )
+    if c["ensemble"] and c["policy"] != "checkpoint":
+        raise ConfigError(
+            f"ensemble: flies checkpoints (policy=checkpoint), got policy={c['policy']}"
         )
 
 
