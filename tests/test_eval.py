@@ -285,6 +285,11 @@ def test_an_ensemble_refuses_a_member_of_another_interface(trained_run, tmp_path
         evaluate_run(trained_run, split="val", plots=False, ensemble=[other])
     with pytest.raises(ConfigError, match=r"ensemble: flies checkpoints"):
         evaluate_run(trained_run, policy="pure_pursuit", ensemble=[other])
+    path = str(trained_run / "checkpoints" / "last.pt")
+    with pytest.raises(ConfigError, match=r"ensemble: needs ckpt=best or last .*got /"):
+        evaluate_run(trained_run, ckpt=path, ensemble=[other])
+    with pytest.raises(ConfigError, match=r"ensemble: no run directory at .*nowhere$"):
+        evaluate_run(trained_run, ensemble=[tmp_path / "nowhere"])
 
 
 # Bad input -------------------------------------------------------------------------------

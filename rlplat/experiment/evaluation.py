@@ -353,9 +353,16 @@ def ensemble_members(
     of ``cfg``: the same learner, observation and action (what an action means)."""
     if runs and policy != "checkpoint":
         raise ConfigError(f"ensemble: flies checkpoints (policy=checkpoint), got policy={policy}")
+    if runs and ckpt not in CHECKPOINT_NAMES:
+        raise ConfigError(
+            f"ensemble: needs ckpt={' or '.join(CHECKPOINT_NAMES)} (each run's own), got {ckpt}"
+        )
     members = []
     for run in runs:
-        member_cfg = load_run_config(run)
+        try:
+            member_cfg = load_run_config(run)
+        except ConfigError as err:
+            raise ConfigError(f"ensemble: {str(err).removeprefix('run_dir: ')}") from None
         for key in ("drone.learner", "observation", "action"):
             mine, theirs = (OmegaConf.select(c, key) for c in (cfg, member_cfg))
             if isinstance(mine, DictConfig):
