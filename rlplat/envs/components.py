@@ -381,12 +381,17 @@ class GuidedVelocityAction(VelocityAction):
             *self._describe_accel(),
         ]
 
+    def _accel_term(self) -> str | None:
+        """The acceleration lead as the card and header state it (None: the textbook law)."""
+        return f"{self.accel_lead:g} s" if self.accel_lead else None
+
     def _describe_accel(self) -> list[str]:
         """The acceleration lead's lines of :meth:`describe` (none for the textbook law)."""
-        if self.accel_lead == 0.0:
+        term = self._accel_term()
+        if term is None:
             return []
         return [
-            f"The law aims with the target's velocity v + {self.accel_lead:g} s * a, a its mean",
+            f"The law aims with the target's velocity v + {term} * a, a its mean",
             "acceleration over the last control period (augmented proportional navigation).",
         ]
 
@@ -444,12 +449,8 @@ class GuidanceLawAction(GuidedVelocityAction):
     def guidance(
         self, rel: Tensor, v_other: Tensor, max_speed: Tensor, a_other: Tensor | None = None
     ) -> Tensor:
-        """The geometry the law needs: target offset, the velocity the law aims with
-        (:meth:`predicted_velocity`) and the max speed, (*B, 7); with a learned acceleration
-        lead the target's velocity, its acceleration and the max speed, (*B, 10)."""
-        if self.dim == 3:
-            v = self.predicted_velocity(v_other, a_other)
-            return torch.cat([rel, v, max_speed.unsqueeze(-1)], -1)
+        """The geometry the law needs, (*B, 10): target offset, its velocity, its acceleration
+        (zero where not known) and the max speed."""
         a = torch.zeros_like(v_other) if a_other is None else a_other
         return torch.cat([rel, v_other, a, max_speed.unsqueeze(-1)], -1)
 
@@ -459,10 +460,9 @@ class GuidanceLawAction(GuidedVelocityAction):
         if guidance is None:
             raise ValueError("action: a guided action needs the guidance action")
         gain, lead, horizon = self.law(action)
-        rel, v_other, speed = guidance[..., :3], guidance[..., 3:6], guidance[..., -1:]
-        if self.dim == 4:
-            v_other = v_other + self.accel(action) * guidance[..., 6:9]
-        return intercept_action(rel, v_other, speed, gain, lead, horizon) * speed
+        rel, v_other, a_other = guidance[..., :3], guidance[..., 3:6], guidance[..., 6:9]
+        v, speed = v_other + self.accel(action) * a_other, guidance[..., 9:10]
+        return intercept_action(rel, v, speed, gain, lead, horizon) * speed
 
     def inverse(self, flown: Tensor, guidance: Tensor) -> Tensor:
         raise ConfigError(
@@ -477,17 +477,16 @@ class GuidanceLawAction(GuidedVelocityAction):
         lead = (self.lead + self.lead_reach * a[..., 1:2]).clamp_min(0.0)
         return gain, lead, self.max_lead_time * self.horizon_factor ** a[..., 2:3]
 
-    def _describe_accel(self) -> list[str]:
+    def _accel_term(self) -> str | None:
         if self.dim == 3:
-            return super()._describe_accel()
-        return [
-            f"The law aims with the target's velocity v + max({self.accel_lead:g} + "
-            f"{self.accel_reach:g} * a3, 0) s * a, a its mean",
-            "acceleration over the last control period (augmented proportional navigation).",
-        ]
+            return super()._accel_term()
+        return f"max({self.accel_lead:g} + {self.accel_reach:g} * a3, 0) s"
 
-    def accel(self, action: Tensor) -> Tensor:
-        """The acceleration lead (*B, 1) s that ``action`` (*B, 4) sets."""
+    def accel(self, action: Tensor) -> Tensor | float:
+        """The acceleration lead in s that ``action`` sets: (*B, 1) from its fourth component,
+        or the configured one for a three-component action."""
+        if self.dim == 3:
+            return self.accel_lead
         a3 = action[..., 3:4].clamp(-1.0, 1.0)
         return (self.accel_lead + self.accel_reach * a3).clamp_min(0.0)
 
@@ -499,11 +498,7 @@ class GuidanceLawAction(GuidedVelocityAction):
             f"{self.gain:g} * {self.gain_factor:g}^a0 1/s, lead = max({self.lead:g} + "
             f"{self.lead_reach:g} * a1, 0), max lead time = {self.max_lead_time:g} * "
             f"{self.horizon_factor:g}^a2 s"
-            + (
-                f", acceleration lead = max({self.accel_lead:g} + {self.accel_reach:g} * a3, 0) s"
-                if learned
-                else ""
-            ),
+            + (f", acceleration lead = {self._accel_term()}" if learned else ""),
             "guidance": {
                 **self._law_card(),
                 "gain_factor": self.gain_factor,
