@@ -282,3 +282,42 @@ def test_the_anchor_adds_its_pull_on_the_mean_action_to_the_actor_loss():
     params = [p for p in loss.actor_network_params.values(True, True) if p.requires_grad]
     grads = torch.autograd.grad(pull, params)
     assert any(g.abs().sum() > 0 for g in grads)
+
+
+def test_actor_average_folds_each_update_into_a_moving_average_and_is_checkpointed():
+    from torchrl.data import Bounded, LazyTensorStorage, TensorDictReplayBuffer
+
+    from rlplat.agents.sac import NetSpec, SACAgent, actor_body
+
+    net = NetSpec(4, 2, (16,), (16,), "relu", (1.0,) * 4)
+    spec = Bounded(-1.0, 1.0, shape=(2,))
+
+    def agent(rate):
+        torch.manual_seed(0)
+        return SACAgent(net, spec, gamma=0.99, tau=0.1, actor_lr=1e-2, critic_lr=1e-3,
+                        alpha_lr=1e-3, actor_average=rate)  # fmt: skip
+
+    n, done = 64, torch.zeros(64, 1, dtype=torch.bool)
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(n), batch_size=32)
+    buffer.extend(TensorDict({
+        "observation": torch.randn(n, 4), "action": torch.rand(n, 2) * 2 - 1,
+        "next": {"observation": torch.randn(n, 4), "reward": torch.randn(n, 1),
+                 "done": done, "terminated": done.clone()},
+    }, batch_size=[n]))  # fmt: skip
+    plain = agent(0.0)
+    assert plain.flown_actor is plain.actor and plain.flown_policy is plain.policy  # 0: itself
+    averaged = agent(0.25)
+    weights = lambda actor: [p.detach().clone() for p in actor_body(actor).parameters()]  # noqa: E731
+    expected = weights(averaged.actor)
+    for _ in range(4):
+        averaged.update_from(buffer)
+        averaged.average_actor()
+        now = weights(averaged.actor)
+        expected = [0.75 * e + 0.25 * w for e, w in zip(expected, now, strict=True)]
+    flown = weights(averaged.flown_actor)
+    for f, e in zip(flown, expected, strict=True):
+        torch.testing.assert_close(f, e, rtol=1e-6, atol=1e-6)  # lerp vs. this sum: rounding
+    assert not all(torch.equal(f, w) for f, w in zip(flown, now, strict=True))
+    resumed = agent(0.25)
+    resumed.load_state_dict(averaged.state_dict())
+    assert all(torch.equal(a, b) for a, b in zip(weights(resumed.flown_actor), flown, strict=True))

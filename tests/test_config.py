@@ -315,8 +315,9 @@ def test_a_run_saved_before_a_key_existed_resumes_with_its_neutral_value():
 
     saved = resolved("drone=attacker_v6")
     del saved["algo"]["failure_weight"], saved["action"]["accel_lead"]
-    del saved["action"]["accel_reach"]
-    assert {"algo.failure_weight", "action.accel_lead", "action.accel_reach"} <= set(ADDED_KEYS)
+    del saved["action"]["accel_reach"], saved["algo"]["actor_average"]
+    added = {"algo.failure_weight", "action.accel_lead", "action.accel_reach", "algo.actor_average"}
+    assert added <= set(ADDED_KEYS)
     check_resume(saved, resolved("drone=attacker_v6", "resume=true"))
     # Any other value is a change, named as one.
     with pytest.raises(ConfigError, match=r"action\.accel_lead \(absent -> 0\.9\)"):
@@ -367,6 +368,7 @@ SAC_PAPER_KEPT = {
     "actor_zero_mean": False,
     "actor_init_std": None,
     "actor_warmup_updates": 0,
+    "actor_average": 0.0,
     "anchor_weight": 0.0,
     "failure_weight": 1.0,
 }

@@ -58,6 +58,7 @@ def test_registries_match_config_groups():
         "attacker_v5",
         "attacker_v6",
         "attacker_v7",
+        "attacker_v8",
         "defender_v1",
     }
 
@@ -71,6 +72,7 @@ def test_registries_match_config_groups():
         ("attacker_v4", 10),
         ("attacker_v5", 10),
         ("attacker_v6", 10),
+        ("attacker_v8", 10),
     ],
 )
 def test_drone_bundles_pick_their_observation_and_cli_wins(scenarios, drone, dim):

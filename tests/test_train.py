@@ -153,6 +153,23 @@ def test_failure_weight_draws_the_references_failures_more_often(
     )
 
 
+def test_actor_average_is_what_a_run_validates_checkpoints_and_resumes(
+    scenarios, tmp_path, tiny_run
+):
+    average_on = ("algo.actor_average=0.05", "algo.actor_warmup_updates=0")  # the actor moves
+    tiny_run(scenarios, tmp_path, *average_on)
+    last = load_checkpoint(tmp_path / "checkpoints" / "last.pt")
+    average, learned = last["agent"]["actor_average"], last["actor"]
+    assert all(torch.equal(learned[k], average[k]) for k in average)  # the average is flown
+    prefix = "actor_network_params."
+    online = {k.removeprefix(prefix): v for k, v in last["agent"]["loss"].items()
+              if k.startswith(prefix)}  # fmt: skip
+    assert online.keys() == average.keys()
+    assert not all(torch.equal(online[k], average[k]) for k in average)  # the learner moved on
+    resumed = tiny_run(scenarios, tmp_path, *average_on, "resume=true", "train.total_frames=512")
+    assert resumed["updates"] > last["counters"]["updates"]
+
+
 def test_same_seed_same_training(scenarios, tmp_path, tiny_run):
     a = tiny_run(scenarios, tmp_path / "a", "seed=3")
     b = tiny_run(scenarios, tmp_path / "b", "seed=3")
@@ -183,6 +200,10 @@ def test_same_seed_same_training(scenarios, tmp_path, tiny_run):
         (
             "algo.action_margin=2",
             r"algo.action_margin: must be a finite number in \[0, 1\], got 2$",
+        ),
+        (
+            "algo.actor_average=-0.1",
+            r"algo.actor_average: must be a finite number in \[0, 1\], got -0.1$",
         ),
     ],
 )

@@ -204,6 +204,9 @@ class SACAgent:
         compile: run the update compiled (:class:`rlplat.agents.compiled.CompiledUpdate`: the
             same losses, Adam steps and soft update as the eager update, in one compiled
             graph).
+        actor_average: with a rate r > 0, an exponential moving average of the actor's
+            weights, ``avg <- (1 - r) avg + r actor`` after each :meth:`average_actor`: the
+            policy the run validates, checkpoints and flies (``flown_actor``); 0 = the actor.
         group: the env's group key of a team of learners (None for a lone learner). The loss
             trains on one drone's transitions at a time (flat keys, see
             :func:`rlplat.agents.transitions.agent_rows`); ``policy`` flies the whole team with
@@ -225,6 +228,7 @@ class SACAgent:
         target_entropy: str | float = "auto",
         loss_function: str = "l2",
         anchor_weight: float = 0.0,
+        actor_average: float = 0.0,
         compile: bool = False,
         group: str | None = None,
         device: torch.device | str = "cpu",
@@ -236,6 +240,24 @@ class SACAgent:
             if group is None
             else make_actor(net, action_spec, device, group=group, body=actor_body(self.actor))
         )
+        # The weight average: a second actor (and its team policy) that the actor's weights
+        # are folded into; without one, the actor is what is flown.
+        self.average_rate = float(actor_average)
+        self.flown_actor, self.flown_policy = self.actor, self.policy
+        if self.average_rate > 0:
+            self.flown_actor = make_actor(net, action_spec, device)
+            self.flown_policy = (
+                self.flown_actor
+                if group is None
+                else make_actor(
+                    net, action_spec, device, group=group, body=actor_body(self.flown_actor)
+                )
+            )
+            self._average_pairs = (
+                [p.data for p in actor_body(self.flown_actor).parameters()],
+                [p.data for p in actor_body(self.actor).parameters()],
+            )
+            self.restart_average()
         critic = make_critic(net, device)
         anchored = {"anchor_weight": anchor_weight} if anchor_weight > 0 else {}
         self.loss = (AnchoredSACLoss if anchored else SACLoss)(
@@ -310,6 +332,16 @@ class SACAgent:
         index, _ = sampler.sample(storage, batch_size)
         return self._compiled(keys, columns, index)
 
+    def restart_average(self) -> None:
+        """Start the moving average at the actor's weights as they are now."""
+        if self.average_rate > 0:
+            self.flown_actor.load_state_dict(self.actor.state_dict())
+
+    def average_actor(self) -> None:
+        """Fold the actor's weights into their moving average (no-op without one)."""
+        if self.average_rate > 0:
+            torch._foreach_lerp_(*self._average_pairs, self.average_rate)
+
     def _batch_keys(self, batch: TensorDictBase) -> tuple:
         """The entries of ``batch`` the loss reads (:func:`compiled_update_keys`)."""
         return compiled_update_keys(self.loss, lambda key: key in batch.keys(True, True))
@@ -333,13 +365,18 @@ class SACAgent:
     # Checkpoints -------------------------------------------------------------------------
 
     def state_dict(self) -> dict[str, Any]:
-        return {
+        state = {
             "loss": self.loss.state_dict(),
             "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
         }
+        if self.average_rate > 0:
+            state["actor_average"] = self.flown_actor.state_dict()
+        return state
 
     def load_state_dict(self, state: Mapping[str, Any]) -> None:
         self.loss.load_state_dict(state["loss"])
+        if self.average_rate > 0:
+            self.flown_actor.load_state_dict(state["actor_average"])
         for k, o in self.optimizers.items():
             o.load_state_dict(state["optimizers"][k])
         if self._compiled is not None:

@@ -184,6 +184,7 @@ TRAIN_RULES: dict[str, Rule] = {
     "algo.actor_init_std": Num(gt=0, null=True),
     "algo.actor_warmup_updates": Num(integer=True, ge=0),
     "algo.anchor_weight": Num(ge=0),
+    "algo.actor_average": Num(ge=0, le=1),
     "algo.failure_weight": Num(gt=0),
     "algo.compile": flag,
     "drone.name": Text(),
@@ -523,6 +524,7 @@ ADDED_KEYS: dict[str, Any] = {
     "algo.failure_weight": 1.0,
     "action.accel_lead": 0.0,
     "action.accel_reach": 0.0,
+    "algo.actor_average": 0.0,
 }
 
 

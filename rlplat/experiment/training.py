@@ -200,6 +200,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
                 while update_credit >= 1.0:
                     with held_actor(agent, state.updates < algo.actor_warmup_updates):
                         losses.append(agent.update_from(buffer))
+                    agent.average_actor()
                     update_credit -= 1.0
                     state.updates += 1
                 if losses:
@@ -347,12 +348,14 @@ def make_agent(net: NetSpec, env: PursuitEnv, algo: DictConfig, device) -> SACAg
         target_entropy=algo.target_entropy,
         loss_function=algo.loss_function,
         anchor_weight=algo.anchor_weight,
+        actor_average=algo.actor_average,
         compile=algo.compile,
         group=env.group,
         device=device,
     )
     if algo.actor_zero_mean or algo.actor_init_std is not None:
         init_actor_output(agent.actor, net.action_dim, algo.actor_zero_mean, algo.actor_init_std)
+        agent.restart_average()
     return agent
 
 
@@ -448,7 +451,7 @@ def checkpoint(run: Run, state: RunState) -> dict[str, Any]:
     return {
         "net": run.net.as_dict(),
         "interface": run.interface,
-        "actor": run.agent.actor.state_dict(),
+        "actor": run.agent.flown_actor.state_dict(),  # the weight average where there is one
         "agent": run.agent.state_dict(),
         **state.as_checkpoint(),
         "rng": rng_state(),
@@ -462,7 +465,7 @@ def validate(run: Run, state: RunState, start: float) -> EpisodeResults:
     """Fly the validation split; keep the policy as ``best.pt`` if it beats the best so far
     (on the role's score, then the mean return)."""
     t0 = time.perf_counter()
-    results = evaluate(run.val_env, run.agent.policy)
+    results = evaluate(run.val_env, run.agent.flown_policy)
     state.evals += 1
     values = {f"eval/{k}": v for k, v in results.summary().items()}
     captured = int(results.captured.sum())
@@ -487,9 +490,9 @@ def test_best(
     cfg: DictConfig, run: Run, state: RunState, reference: EpisodeResults, device
 ) -> dict[str, Any]:
     """Fly the best policy on the test split; write and return the run's summary."""
-    run.agent.actor.load_state_dict(load_checkpoint(run.ckpt_dir / "best.pt")["actor"])
+    run.agent.flown_actor.load_state_dict(load_checkpoint(run.ckpt_dir / "best.pt")["actor"])
     test_env = make_eval_env(cfg, run.scenarios, "test", device)
-    test = evaluate(test_env, run.agent.policy)
+    test = evaluate(test_env, run.agent.flown_policy)
     run.metrics.log({f"test/{k}": v for k, v in test.summary().items()}, state.frames)
     role, n_test = run.role, len(test_env.scenarios)
     summary = {
