@@ -30,6 +30,7 @@ from torchrl.data import Bounded
 from rlplat.agents.checkpoint import actor_from_state, load_checkpoint, saved_interface
 from rlplat.envs.components import OBSERVATIONS, DroneView
 from rlplat.envs.kinematics import (
+    aim_velocity,
     follow_route,
     gather_drones,
     intercept_action,
@@ -156,7 +157,8 @@ class ProportionalNavigation(_Scripted):
         if self.accel_lead:
             if accelerations is None:
                 raise ValueError("proportional_navigation: accel_lead > 0 needs accelerations")
-            v_other = v_other + self.accel_lead * gather_drones(accelerations[:, self.others], near)
+            a_other = gather_drones(accelerations[:, self.others], near)
+            v_other = aim_velocity(v_other, a_other, self.accel_lead)
         action = intercept_action(rel, v_other, speed, self.gain, self.lead, self.max_lead_time)
         return self._action(action)
 

@@ -13,7 +13,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from rlplat.envs.kinematics import intercept_action
+from rlplat.envs.kinematics import aim_velocity, intercept_action
 from rlplat.errors import ConfigError
 
 
@@ -326,19 +326,13 @@ class GuidedVelocityAction(VelocityAction):
         self.max_lead_time, self.scale = float(max_lead_time), float(scale)
         self.accel_lead = float(accel_lead)
 
-    def predicted_velocity(self, v_other: Tensor, a_other: Tensor | None) -> Tensor:
-        """The target velocity the law aims with: ``v_other + accel_lead * a_other``."""
-        if a_other is None or self.accel_lead == 0.0:
-            return v_other
-        return v_other + self.accel_lead * a_other
-
     def guidance(
         self, rel: Tensor, v_other: Tensor, max_speed: Tensor, a_other: Tensor | None = None
     ) -> Tensor:
         """Guidance action (*B, 3) in [-1, 1] for targets at ``rel`` (*B, 3) m moving at
         ``v_other`` (*B, 3) m/s and accelerating at ``a_other`` (*B, 3) m/s^2 (None: not
         known, the textbook law), pursuers of ``max_speed`` (*B,) m/s."""
-        speed, v = max_speed.unsqueeze(-1), self.predicted_velocity(v_other, a_other)
+        speed, v = max_speed.unsqueeze(-1), aim_velocity(v_other, a_other, self.accel_lead)
         return intercept_action(rel, v, speed, self.gain, self.lead, self.max_lead_time)
 
     def __call__(self, action: Tensor, max_speed: Tensor, guidance: Tensor | None = None) -> Tensor:
@@ -461,7 +455,7 @@ class GuidanceLawAction(GuidedVelocityAction):
             raise ValueError("action: a guided action needs the guidance action")
         gain, lead, horizon = self.law(action)
         rel, v_other, a_other = guidance[..., :3], guidance[..., 3:6], guidance[..., 6:9]
-        v, speed = v_other + self.accel(action) * a_other, guidance[..., 9:10]
+        v, speed = aim_velocity(v_other, a_other, self.accel(action)), guidance[..., 9:10]
         return intercept_action(rel, v, speed, gain, lead, horizon) * speed
 
     def inverse(self, flown: Tensor, guidance: Tensor) -> Tensor:

@@ -30,6 +30,16 @@ def pure_pursuit(position: Tensor, target: Tensor, max_speed: Tensor, gain: floa
     return _saturate(gain * (target - position), max_speed)
 
 
+def aim_velocity(v_other: Tensor, a_other: Tensor | None, accel_lead: float | Tensor) -> Tensor:
+    """The target velocity augmented proportional navigation aims with, ``v + accel_lead * a``:
+    a target whose velocity follows its command with time constant tau is turning to
+    ``v + tau * a``. ``a_other`` None (not known) or ``accel_lead`` 0 is the textbook law's
+    ``v_other``. ``accel_lead`` may be a tensor (*B, 1), one per row."""
+    if a_other is None or (isinstance(accel_lead, float) and accel_lead == 0.0):
+        return v_other
+    return v_other + accel_lead * a_other
+
+
 def intercept_action(
     rel: Tensor,
     v_other: Tensor,
