@@ -3,6 +3,7 @@ and the capture ceiling of a split."""
 
 import pytest
 import torch
+from torchrl.envs.utils import check_env_specs
 
 from rlplat import make_env
 from rlplat.agents.policies import ProportionalNavigation, make_scripted_policy
@@ -235,6 +236,26 @@ def test_pursuit_clock_adds_the_time_left_until_the_time_limit(scenarios):
     torch.testing.assert_close(
         first.reset()["observation"][:, [0, 1, 2, 3, *range(5, 11)]], state.reset()["observation"]
     )
+
+
+def test_pursuit_accel_adds_the_opponents_acceleration_the_env_reports(scenarios):
+    env = make_env("observation=pursuit_accel", scenarios=scenarios, num_envs=5, split="val")
+    state = make_env("observation=pursuit_state", scenarios=scenarios, num_envs=5, split="val")
+    td, base = env.reset(), state.reset()
+    assert td["observation"].shape == (5, 13)
+    names = [f["name"] for f in env.obs_fn.features()[10:]]
+    assert names == ["a_opponent0.x", "a_opponent0.y", "a_opponent0.z"]
+    assert env.obs_fn.features()[10]["unit"] == "m/s^2"
+    torch.testing.assert_close(td["observation"][:, 10:], torch.zeros(5, 3))  # at rest
+    for _ in range(15):
+        td = env.step(td.set("action", torch.ones(5, 3)))["next"]
+        base = state.step(base.set("action", torch.ones(5, 3)))["next"]
+        # The same flight: the first ten features are pursuit_state's, the last three the
+        # defender's acceleration as the env reports it.
+        torch.testing.assert_close(td["observation"][:, :10], base["observation"])
+        torch.testing.assert_close(td["observation"][:, 10:], td["accelerations"][:, 1])
+    assert td["observation"][:, 10:].abs().amax() > 0.1  # the defenders turn and speed up
+    check_env_specs(env)
 
 
 # The capture ceiling --------------------------------------------------------------------

@@ -55,6 +55,26 @@ def test_specs_of_every_team_size(team_sets, drone, k, m):
         assert td["defender", "caught"].shape == (3, team, 1)
 
 
+@pytest.mark.parametrize(("k", "m"), TEAMS)
+def test_pursuit_accel_blocks_hold_each_other_drones_acceleration(team_sets, k, m):
+    env = make_env("drone=attacker_v8", "observation=pursuit_accel", scenarios=team_sets[k, m],
+                   num_envs=3)  # fmt: skip
+    check_env_specs(env, seed=0)
+    td = env.reset()
+    obs_key = "observation" if k == 1 else ("attacker", "observation")
+    block = 9 + (m > 1)  # p, v, a (and the in-play flag)
+    assert td[obs_key].shape[-1] == 4 + block * (m + k - 1)
+    action = torch.full(env.full_action_spec[env.action_key].shape, 0.5)
+    td = env.step(td.set(env.action_key, action))["next"]
+    obs = td[obs_key].reshape(3, k, -1)
+    a = td["accelerations"]  # (3, k + m, 3): attackers first
+    for i in range(k):
+        others = [k + j for j in range(m)] + [j for j in range(k) if j != i]
+        for b, d in enumerate(others):
+            at = 4 + b * block + 6
+            torch.testing.assert_close(obs[:, i, at : at + 3], a[:, d])
+
+
 def test_a_caught_learning_defender_stops_and_earns_nothing_more(team_sets):
     env = make_env("drone=defender_v1", scenarios=team_sets[2, 2], split="val", num_envs=16)
     env.set_seed(0)

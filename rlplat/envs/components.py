@@ -34,6 +34,9 @@ class DroneView:
             are still in play (False: a caught defender); None where no observation reads them.
         own_max_speed: (*B,) float32 m/s, the drone's maximum speed per axis.
         time_left: (*B,) float32 s, the time until the episode's time limit.
+        other_acceleration, mate_acceleration: (*B, M, 3) and (*B, K, 3) float32 m/s^2, each
+            opponent's and team-mate's mean acceleration over the last control period; None
+            where no observation reads them.
     """
 
     own_position: Tensor
@@ -47,6 +50,8 @@ class DroneView:
     mate_in_play: Tensor | None = None
     own_max_speed: Tensor | None = None
     time_left: Tensor | None = None
+    other_acceleration: Tensor | None = None
+    mate_acceleration: Tensor | None = None
 
 
 def inside_ellipsoid(rel: Tensor, semi_axes: Tensor) -> Tensor:
@@ -74,6 +79,7 @@ class _Observation:
         position_scale: m, typical magnitude of a position feature.
         velocity_scale: m/s, typical magnitude of a velocity feature.
         time_scale: s, typical magnitude of a time feature.
+        accel_scale: m/s^2, typical magnitude of an acceleration feature.
         opponents: M, opponents the drone sees (set by the env factory from the scenarios).
         mates: K, team-mates the drone sees (set by the env factory from the scenarios).
         in_play: add each other drone's in-play flag (set by the env factory where defenders
@@ -81,7 +87,7 @@ class _Observation:
     """
 
     own_layout: tuple[str, ...] = ()  # "p"/"v" per 3-vector, "s" per speed, "t" per time
-    other_layout: tuple[str, ...] = ()  # "p" or "v" per 3-vector of each other drone's block
+    other_layout: tuple[str, ...] = ()  # "p", "v" or "a" per 3-vector of each other drone's block
     own_names: tuple[str, ...] = ()  # what each own 3-vector is (same order as own_layout)
     other_names: tuple[str, ...] = ()  # each other drone's, "{d}" standing for that drone
 
@@ -91,12 +97,13 @@ class _Observation:
         position_scale: float = 50.0,
         velocity_scale: float = 5.0,
         time_scale: float = 60.0,
+        accel_scale: float = 5.0,
         opponents: int = 1,
         mates: int = 0,
         in_play: bool = False,
     ) -> None:
         scales = {"position_scale": position_scale, "velocity_scale": velocity_scale,
-                  "time_scale": time_scale}  # fmt: skip
+                  "time_scale": time_scale, "accel_scale": accel_scale}  # fmt: skip
         for name, v in scales.items():
             if not v > 0:
                 raise ConfigError(f"observation.{name}: must be > 0, got {v}")
@@ -110,6 +117,7 @@ class _Observation:
         per = {
             "p": [float(position_scale)] * 3,
             "v": [float(velocity_scale)] * 3,
+            "a": [float(accel_scale)] * 3,
             "s": [float(velocity_scale)],
             "t": [float(time_scale)],
             "f": [1.0],
@@ -119,8 +127,10 @@ class _Observation:
 
     def features(self) -> list[dict[str, str | float]]:
         """What each of the ``dim`` features is: ``name`` (e.g. ``(p_opponent0 - p_own).x``),
-        ``unit`` (``m``, ``m/s``, ``s`` or ``1`` for an in-play flag) and ``scale``, in order."""
-        kinds = {"p": ("m", 3), "v": ("m/s", 3), "s": ("m/s", 1), "t": ("s", 1), "f": ("1", 1)}
+        ``unit`` (``m``, ``m/s``, ``m/s^2``, ``s`` or ``1`` for an in-play flag) and ``scale``,
+        in order."""
+        kinds = {"p": ("m", 3), "v": ("m/s", 3), "a": ("m/s^2", 3), "s": ("m/s", 1), "t": ("s", 1),
+                 "f": ("1", 1)}  # fmt: skip
         named = list(zip(self.own_names, self.own_layout, strict=True))
         others = [f"opponent{i}" for i in range(self.opponents)]
         others += [f"mate{j}" for j in range(self.mates)]
@@ -141,14 +151,17 @@ class _Observation:
 
     def __call__(self, view: DroneView) -> Tensor:
         """The observation (*B, dim) float32."""
-        blocks = self._block(view, view.other_position, view.other_velocity, view.other_in_play)
+        blocks = self._block(view, view.other_position, view.other_velocity,
+                             view.other_acceleration, view.other_in_play)  # fmt: skip
         if self.mates:
-            mates = self._block(view, view.mate_position, view.mate_velocity, view.mate_in_play)
+            mates = self._block(view, view.mate_position, view.mate_velocity,
+                                view.mate_acceleration, view.mate_in_play)  # fmt: skip
             blocks = torch.cat([blocks, mates], -2)
         return torch.cat([*self._own(view), blocks.flatten(-2)], -1)  # (*B, dim)
 
-    def _block(self, view: DroneView, position: Tensor, velocity: Tensor, in_play) -> Tensor:
-        block = self._other(view, position, velocity)
+    def _block(self, view: DroneView, position: Tensor, velocity: Tensor, acceleration,
+               in_play) -> Tensor:  # fmt: skip
+        block = self._other(view, position, velocity, acceleration)
         if not self.in_play:
             return block
         return torch.cat([block, in_play.unsqueeze(-1).to(block.dtype)], -1)
@@ -157,8 +170,9 @@ class _Observation:
         """The drone's own features, each (*B, 3) (a speed or a time (*B, 1))."""
         return []
 
-    def _other(self, view: DroneView, position: Tensor, velocity: Tensor) -> Tensor:
-        """The block of each other drone at ``position``/``velocity`` (*B, X, 3): (*B, X, f)."""
+    def _other(self, view: DroneView, position: Tensor, velocity: Tensor, acceleration) -> Tensor:
+        """The block of each other drone at ``position``/``velocity``/``acceleration`` (*B, X, 3;
+        the acceleration None where the view has none): (*B, X, f)."""
         raise NotImplementedError
 
 
@@ -172,7 +186,7 @@ class AbsoluteObservation(_Observation):
     def _own(self, view: DroneView) -> list[Tensor]:
         return [view.own_position, view.own_velocity]
 
-    def _other(self, view: DroneView, position: Tensor, velocity: Tensor) -> Tensor:
+    def _other(self, view: DroneView, position: Tensor, velocity: Tensor, acceleration) -> Tensor:
         return torch.cat([position, velocity], -1)
 
 
@@ -182,7 +196,7 @@ class RelativePositionObservation(_Observation):
     other_layout = ("p",)
     other_names = ("p_{d} - p_own",)
 
-    def _other(self, view: DroneView, position: Tensor, velocity: Tensor) -> Tensor:
+    def _other(self, view: DroneView, position: Tensor, velocity: Tensor, acceleration) -> Tensor:
         return position - view.own_position.unsqueeze(-2)
 
 
@@ -198,7 +212,7 @@ class RelativeStateObservation(_Observation):
     def _own(self, view: DroneView) -> list[Tensor]:
         return [view.own_velocity]
 
-    def _other(self, view: DroneView, position: Tensor, velocity: Tensor) -> Tensor:
+    def _other(self, view: DroneView, position: Tensor, velocity: Tensor, acceleration) -> Tensor:
         own_p, own_v = view.own_position.unsqueeze(-2), view.own_velocity.unsqueeze(-2)
         return torch.cat([position - own_p, velocity - own_v], -1)
 
@@ -239,6 +253,25 @@ class PursuitClockObservation(PursuitStateObservation):
         return [*super()._own(view), view.time_left.unsqueeze(-1)]
 
 
+class PursuitAccelObservation(PursuitStateObservation):
+    """``pursuit_state`` and each other drone's acceleration.
+
+    s = [v_own, max_speed_own, (p_other - p_own, v_other - v_own, a_other) per other drone],
+    (*B, 13) with one opponent; a_other is the drone's mean acceleration over the last control
+    period (zero at the first step). A drone's velocity follows its command with a lag, so its
+    acceleration says where its velocity is going: the turn of an evading defender shows there
+    a control period or more before it shows in its velocity.
+    """
+
+    other_layout = ("p", "v", "a")
+    other_names = ("p_{d} - p_own", "v_{d} - v_own", "a_{d}")
+
+    def _other(self, view: DroneView, position: Tensor, velocity: Tensor, acceleration) -> Tensor:
+        if acceleration is None:
+            raise ValueError("observation pursuit_accel: the view has no acceleration")
+        return torch.cat([super()._other(view, position, velocity, acceleration), acceleration], -1)
+
+
 class RouteStateObservation(RelativeStateObservation):
     """What a route-flying defender needs: its own velocity, the way to its next setpoint and
     each other drone's relative state.
@@ -260,6 +293,7 @@ OBSERVATIONS = {
     "relative_state": RelativeStateObservation,
     "pursuit_state": PursuitStateObservation,
     "pursuit_clock": PursuitClockObservation,
+    "pursuit_accel": PursuitAccelObservation,
     "route_state": RouteStateObservation,
 }
 

@@ -578,6 +578,12 @@ class PursuitEnv(EnvBase):
         if t > 1:
             view = replace(view, mate_position=own_p[:, self._mate_index],
                            mate_velocity=own_v[:, self._mate_index])  # fmt: skip
+        if "a" in self.obs_fn.other_layout:  # an observation that reads accelerations
+            a = self.acceleration
+            other_a = a[:, self.opponents].unsqueeze(1).expand(n, t, -1, 3)
+            view = replace(view, other_acceleration=other_a)
+            if t > 1:
+                view = replace(view, mate_acceleration=a[:, self.team][:, self._mate_index])
         if self.obs_fn.in_play:  # defenders can leave play: which drones still are
             attackers = torch.ones_like(self.caught[:, :1]).expand(n, self.num_attackers)
             playing = torch.cat([attackers, ~self.caught], 1)  # (N, k + m)

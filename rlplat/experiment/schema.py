@@ -242,6 +242,7 @@ OBSERVATION_KNOBS: dict[str, Rule] = {
     "position_scale": POSITIVE,
     "velocity_scale": POSITIVE,
     "time_scale": POSITIVE,
+    "accel_scale": POSITIVE,
 }
 #: Knobs of the actions (conf/action/).
 ACTION_KNOBS: dict[str, Rule] = {
