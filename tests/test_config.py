@@ -316,7 +316,9 @@ def test_a_run_saved_before_a_key_existed_resumes_with_its_neutral_value():
     saved = resolved("drone=attacker_v6")
     del saved["algo"]["failure_weight"], saved["action"]["accel_lead"]
     del saved["action"]["accel_reach"], saved["algo"]["actor_average"]
-    added = {"algo.failure_weight", "action.accel_lead", "action.accel_reach", "algo.actor_average"}
+    del saved["action"]["correction_reach"]
+    added = {"algo.failure_weight", "action.accel_lead", "action.accel_reach",
+             "algo.actor_average", "action.correction_reach"}  # fmt: skip
     assert added <= set(ADDED_KEYS)
     check_resume(saved, resolved("drone=attacker_v6", "resume=true"))
     # Any other value is a change, named as one.

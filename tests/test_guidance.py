@@ -99,6 +99,53 @@ def test_the_augmented_law_aims_with_the_velocity_the_target_turns_to(scenarios)
         own(positions, velocities, speeds, caught)
 
 
+def test_a_law_action_with_a_correction_adds_it_to_the_laws_command(scenarios):
+    n = len(scenarios.split("val"))
+    law = make_env(PLAIN, LAW, scenarios=scenarios, num_envs=n, split="val")
+    corrected = make_env(PLAIN, LAW, "action.correction_reach=0.5", scenarios=scenarios,
+                         num_envs=n, split="val")  # fmt: skip
+    assert corrected.full_action_spec["action"].shape == (n, 6)
+    assert not corrected.action_fn.invertible
+    params = torch.tensor([0.3, -0.2, 0.5])
+    a, b = law.reset(), corrected.reset()
+    for _ in range(20):  # a zero correction flies the law its parameters set
+        a = law.step(a.set("action", params.expand(n, 3)))["next"]
+        b = corrected.step(b.set("action", torch.cat([params, torch.zeros(3)]).expand(n, 6)))
+        b = b["next"]
+        torch.testing.assert_close(a["positions"], b["positions"], rtol=0, atol=0)
+    # The correction moves the command by reach * c per axis, within the speed limit.
+    fn, speed = corrected.action_fn, torch.tensor([4.0])
+    guidance = fn.guidance(torch.tensor([[30.0, 0.0, 0.0]]), torch.zeros(1, 3), speed)
+    c = torch.tensor([[0.0, 0.0, 0.0, -1.0, 0.4, 0.0]])
+    torch.testing.assert_close(fn(c, speed, guidance), torch.tensor([[2.0, 0.8, 0.0]]))
+    with pytest.raises(ConfigError, match="action.correction_reach >= 2"):
+        make_scripted_policy("pure_pursuit", corrected)
+
+
+def test_a_correction_of_reach_two_flies_every_scripted_policy(scenarios):
+    n = len(scenarios.split("val"))
+    plain = make_env(PLAIN, scenarios=scenarios, num_envs=n, split="val")
+    corrected = make_env(PLAIN, LAW, "action.correction_reach=2", scenarios=scenarios,
+                         num_envs=n, split="val")  # fmt: skip
+    for name in ("pure_pursuit", "proportional_navigation"):
+        a, b = plain.reset(), corrected.reset()
+        on_plain = make_scripted_policy(name, plain)
+        through = make_scripted_policy(name, corrected)
+        for _ in range(30):
+            a = plain.step(on_plain(a))["next"]
+            b = through(b)
+            assert (b["action"][:, :3] == 0).all()  # the law at its zero action, corrected
+            b = corrected.step(b)["next"]
+            torch.testing.assert_close(a["positions"], b["positions"], rtol=0, atol=1e-4)
+    from rlplat.experiment.config import compose_config
+    from rlplat.experiment.schema import validate_train_config
+
+    # attacker_v4's scripted start (proportional navigation plus noise) flies through it.
+    validate_train_config(compose_config("train", [LAW, "action.correction_reach=2"]))
+    with pytest.raises(ConfigError, match="algo.init_policy: 'proportional_navigation' cannot"):
+        validate_train_config(compose_config("train", [LAW, "action.correction_reach=1.5"]))
+
+
 @pytest.mark.parametrize(
     "key,value", [("scale", 0), ("lead", -1), ("gain", -2), ("accel_lead", -0.5)]
 )
@@ -198,7 +245,8 @@ def test_a_law_action_flies_no_scripted_policy(scenarios):
 
 
 @pytest.mark.parametrize(
-    "key,value", [("gain_factor", 1), ("lead_reach", -0.1), ("accel_reach", -0.1)]
+    "key,value",
+    [("gain_factor", 1), ("lead_reach", -0.1), ("accel_reach", -0.1), ("correction_reach", -0.1)],
 )
 def test_a_law_action_refuses_bad_knobs(scenarios, key, value):
     with pytest.raises(ConfigError, match=f"action.{key}"):

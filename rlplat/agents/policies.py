@@ -241,7 +241,8 @@ def make_scripted_policy(name: str, env: PursuitEnv, **kwargs: Any) -> TensorDic
         if not getattr(env.action_fn, "invertible", True):
             raise ConfigError(
                 f"policy: {name} cannot be flown through action={env.action_fn.name} (its "
-                "actions set the guidance law's parameters; fly it on action=velocity)"
+                "actions set the guidance law's parameters; fly it on action=velocity, or give "
+                "the action a correction: action.correction_reach >= 2)"
             )
         module = Unguided(module, env)
     return TensorDictModule(module, in_keys=list(module.in_keys), out_keys=[env.action_key])

@@ -307,6 +307,12 @@ class VelocityAction:
     dim = 3
     guided = False  # the env passes no guidance action
 
+    @classmethod
+    def flies_any_command(cls, cfg: Mapping[str, Any]) -> bool:
+        """Whether the action configured by ``cfg`` (a ``conf/action/`` node) flies every
+        command, so a scripted policy can be flown through it."""
+        return True
+
     def __call__(self, action: Tensor, max_speed: Tensor, guidance: Tensor | None = None) -> Tensor:
         """Map action (*B, 3) in [-1, 1] and max_speed (*B,) m/s to a command (*B, 3) m/s."""
         return action.clamp(-1.0, 1.0) * max_speed.unsqueeze(-1)
@@ -432,7 +438,7 @@ class GuidanceLawAction(GuidedVelocityAction):
     ``gain * gain_factor ** a0``, ``lead + lead_reach * a1`` (at least 0) and
     ``max_lead_time * horizon_factor ** a2``. Every action flies some guidance law, so
     exploring never leaves the family; a scripted policy cannot be flown through it (no
-    inverse). Attackers only.
+    inverse) unless a correction of reach 2 or more is added. Attackers only.
 
     Args:
         gain, lead, max_lead_time: the law of the zero action.
@@ -444,12 +450,13 @@ class GuidanceLawAction(GuidedVelocityAction):
         accel_reach: >= 0; above 0 the action has a fourth component that sets the
             acceleration lead too, ``accel_lead + accel_reach * a3`` (at least 0), so the
             policy chooses where to trust the target's acceleration.
+        correction_reach: >= 0; above 0 the action has three more (last) components ``c``, a
+            correction added to the law's command as :class:`GuidedVelocityAction` adds it:
+            ``clamp(law + correction_reach * c, -1, 1) * max_speed``. From 2 on every command
+            is reachable and :meth:`inverse` flies a scripted policy (parameters at zero).
     """
 
     name = "guidance_law"
-    #: No action flies an arbitrary command: a scripted policy is flown on a plain velocity
-    #: action instead (the training's reference), or not at all (``algo.init_policy``).
-    invertible = False
 
     def __init__(
         self,
@@ -462,17 +469,34 @@ class GuidanceLawAction(GuidedVelocityAction):
         horizon_factor: float = 4.0,
         accel_lead: float = 0.0,
         accel_reach: float = 0.0,
+        correction_reach: float = 0.0,
     ) -> None:
         super().__init__(gain=gain, lead=lead, max_lead_time=max_lead_time, accel_lead=accel_lead)
         for name, v in (("gain_factor", gain_factor), ("horizon_factor", horizon_factor)):
             if not v > 1:
                 raise ConfigError(f"action.{name}: must be > 1, got {v}")
-        for name, v in (("lead_reach", lead_reach), ("accel_reach", accel_reach)):
+        reaches = (("lead_reach", lead_reach), ("accel_reach", accel_reach),
+                   ("correction_reach", correction_reach))  # fmt: skip
+        for name, v in reaches:
             if not v >= 0:
                 raise ConfigError(f"action.{name}: must be >= 0, got {v}")
         self.gain_factor, self.lead_reach = float(gain_factor), float(lead_reach)
         self.horizon_factor, self.accel_reach = float(horizon_factor), float(accel_reach)
-        self.dim = 4 if self.accel_reach > 0 else 3
+        self.correction_reach = float(correction_reach)
+        self.law_dim = 4 if self.accel_reach > 0 else 3  # the components that set the law
+        self.dim = self.law_dim + (3 if self.correction_reach > 0 else 0)
+
+    @classmethod
+    def flies_any_command(cls, cfg: Mapping[str, Any]) -> bool:
+        """With a correction of reach 2 or more. Where no action flies a command, a scripted
+        policy is flown on a plain velocity action instead (the training's reference), or not
+        at all (``algo.init_policy``)."""
+        return float(cfg.get("correction_reach", 0.0)) >= 2.0
+
+    @property
+    def invertible(self) -> bool:
+        """Whether :meth:`inverse` flies any command (see :meth:`flies_any_command`)."""
+        return self.flies_any_command({"correction_reach": self.correction_reach})
 
     def guidance(
         self, rel: Tensor, v_other: Tensor, max_speed: Tensor, a_other: Tensor | None = None
@@ -490,13 +514,24 @@ class GuidanceLawAction(GuidedVelocityAction):
         gain, lead, horizon = self.law(action)
         rel, v_other, a_other = guidance[..., :3], guidance[..., 3:6], guidance[..., 6:9]
         v, speed = aim_velocity(v_other, a_other, self.accel(action)), guidance[..., 9:10]
-        return intercept_action(rel, v, speed, gain, lead, horizon) * speed
+        command = intercept_action(rel, v, speed, gain, lead, horizon)
+        if self.correction_reach > 0:
+            correction = action[..., self.law_dim :].clamp(-1.0, 1.0)
+            command = (command + self.correction_reach * correction).clamp(-1.0, 1.0)
+        return command * speed
 
     def inverse(self, flown: Tensor, guidance: Tensor) -> Tensor:
-        raise ConfigError(
-            "action=guidance_law: a scripted policy cannot be flown through it (no action "
-            "gives an arbitrary command)"
-        )
+        """The action that flies the action ``flown`` (*B, 3) of a plain velocity action under
+        ``guidance``, the zero action's law as an action (*B, 3): the law's parameters at zero
+        and the correction that makes up the difference (exact for ``correction_reach >= 2``)."""
+        if not self.invertible:
+            raise ConfigError(
+                "action=guidance_law: a scripted policy cannot be flown through it (no action "
+                "gives an arbitrary command; action.correction_reach >= 2 gives one)"
+            )
+        correction = ((flown - guidance) / self.correction_reach).clamp(-1.0, 1.0)
+        return torch.cat([torch.zeros_like(flown[..., :1]).expand(*flown.shape[:-1], self.law_dim),
+                          correction], -1)  # fmt: skip
 
     def law(self, action: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """The gain, lead and longest prediction (each (*B, 1)) that ``action`` (*B, 3) sets."""
@@ -506,35 +541,47 @@ class GuidanceLawAction(GuidedVelocityAction):
         return gain, lead, self.max_lead_time * self.horizon_factor ** a[..., 2:3]
 
     def _accel_term(self) -> str | None:
-        if self.dim == 3:
+        if self.law_dim == 3:
             return super()._accel_term()
         return f"max({self.accel_lead:g} + {self.accel_reach:g} * a3, 0) s"
 
     def accel(self, action: Tensor) -> Tensor | float:
         """The acceleration lead in s that ``action`` sets: (*B, 1) from its fourth component,
         or the configured one for a three-component action."""
-        if self.dim == 3:
+        if self.law_dim == 3:
             return self.accel_lead
         a3 = action[..., 3:4].clamp(-1.0, 1.0)
         return (self.accel_lead + self.accel_reach * a3).clamp_min(0.0)
 
     def card(self) -> dict[str, Any]:
-        learned = self.dim == 4
+        learned = self.law_dim == 4
+        features = ["log_gain", "lead", "log_max_lead_time"] + ["accel_lead"] * learned
+        if self.correction_reach > 0:
+            features += ["correction.x", "correction.y", "correction.z"]
         return {
-            "features": ["log_gain", "lead", "log_max_lead_time"] + ["accel_lead"] * learned,
+            "features": features,
             "unit": "1: the parameters of proportional navigation, flown by the env: gain = "
             f"{self.gain:g} * {self.gain_factor:g}^a0 1/s, lead = max({self.lead:g} + "
             f"{self.lead_reach:g} * a1, 0), max lead time = {self.max_lead_time:g} * "
             f"{self.horizon_factor:g}^a2 s"
-            + (f", acceleration lead = {self._accel_term()}" if learned else ""),
+            + (f", acceleration lead = {self._accel_term()}" if learned else "")
+            + (f"; {self._correction_term()}" if self.correction_reach > 0 else ""),
             "guidance": {
                 **self._law_card(),
                 "gain_factor": self.gain_factor,
                 "lead_reach": self.lead_reach,
                 "horizon_factor": self.horizon_factor,
                 "accel_reach": self.accel_reach,
+                "correction_reach": self.correction_reach,
             },
         }
+
+    def _correction_term(self) -> str:
+        c = f"a{self.law_dim}..a{self.law_dim + 2}"
+        return (
+            f"the velocity command is clamp(law + {self.correction_reach:g} * ({c}), -1, 1) x "
+            "max speed per axis"
+        )
 
     def describe(self) -> list[str]:
         return [
@@ -543,6 +590,7 @@ class GuidanceLawAction(GuidedVelocityAction):
             f"{self.lead:g} + {self.lead_reach:g} * a1, 0), max lead time {self.max_lead_time:g}"
             f" * {self.horizon_factor:g}^a2 s (rlplat.envs.kinematics.intercept_action).",
             *self._describe_accel(),
+            *([self._correction_term() + "."] if self.correction_reach > 0 else []),
         ]
 
 

@@ -255,6 +255,7 @@ ACTION_KNOBS: dict[str, Rule] = {
     "horizon_factor": Num(gt=1),
     "accel_lead": NON_NEGATIVE,
     "accel_reach": NON_NEGATIVE,
+    "correction_reach": NON_NEGATIVE,
 }
 #: Component groups: registry, knob rules, and the arguments the env factory passes itself.
 COMPONENTS: dict[str, tuple[Mapping[str, Any], Mapping[str, Rule], tuple[str, ...]]] = {
@@ -354,10 +355,11 @@ def _check_train_fields(c: Mapping[str, Any]) -> None:
             f"drone.learner is the {learner}; valid: {', '.join(valid)}"
         )
     action = ACTIONS.get(c["action"].get("name"))
-    if policy != "random" and not getattr(action, "invertible", True):
+    if policy != "random" and action is not None and not action.flies_any_command(c["action"]):
         raise ConfigError(
             f"algo.init_policy: {show(policy)} cannot be flown through action="
-            f"{c['action']['name']} (its actions set the guidance law's parameters); valid: random"
+            f"{c['action']['name']} (its actions set the guidance law's parameters; "
+            "action.correction_reach >= 2 flies it); valid: random"
         )
     first_update = max(algo["batch_size"], algo["init_random_frames"] * _learning_drones(c))
     if algo["buffer_size"] < first_update:
@@ -525,6 +527,7 @@ ADDED_KEYS: dict[str, Any] = {
     "algo.failure_weight": 1.0,
     "action.accel_lead": 0.0,
     "action.accel_reach": 0.0,
+    "action.correction_reach": 0.0,
     "algo.actor_average": 0.0,
 }
 
