@@ -153,6 +153,36 @@ def test_shipped_defender_is_what_its_card_says():
     assert nn.route_fraction.mean() >= follower.route_fraction.mean()
 
 
+@pytest.mark.parametrize(
+    ("observation", "columns"), [("pursuit_accel", [10, 11, 12]), ("pursuit_clock", [4])]
+)
+def test_a_network_defender_sees_what_its_observation_reads(mixed, tmp_path, observation, columns):
+    # A network on an observation that reads the attacker's acceleration or the time left, made
+    # from the shipped one: only those features reach its first layer.
+    state = load_checkpoint(shipped_path(SHIPPED_DEFENDER))
+    node = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "observation" / f"{observation}.yaml"))
+    obs = OBSERVATIONS[observation](**{k: v for k, v in node.items() if k != "name"})
+    state["config"]["observation"] = node
+    state["interface"]["observation.name"] = observation
+    state["net"] = {**state["net"], "obs_dim": obs.dim, "obs_scale": obs.scale}
+    actor = state["actor"]
+    actor["module.0.module.0.inv_scale"] = 1.0 / torch.tensor(obs.scale)
+    first = torch.zeros(64, obs.dim)
+    first[:, columns] = torch.randn(64, len(columns), generator=torch.Generator().manual_seed(0))
+    for name, weight in (("reads", first), ("blind", torch.zeros(64, obs.dim))):
+        actor["module.0.module.0.body.0.weight"] = weight
+        save_checkpoint(
+            tmp_path / f"{name}.pt", {k: v for k, v in state.items() if k != "format_version"}
+        )
+
+    def rollout(network):
+        env = make_env(f"env.defender_network={network}", scenarios=mixed, split="val", num_envs=16)
+        return env.rollout(20, break_when_any_done=False)
+
+    reads, blind = rollout(tmp_path / "reads.pt"), rollout(tmp_path / "blind.pt")
+    assert (reads["next", "positions"] - blind["next", "positions"]).abs().amax() > 0.01
+
+
 def test_nn_defenders_fly_the_network(mixed, defender_run, tmp_path):
     run, _ = defender_run
     # A network that always commands zero velocity: its defenders hover where they start.

@@ -283,6 +283,12 @@ def test_an_ensemble_refuses_a_member_of_another_interface(trained_run, tmp_path
     OmegaConf.save(cfg, other / "config.yaml")
     with pytest.raises(ConfigError, match=r"ensemble: .*other has action=.*run_dir has action="):
         evaluate_run(trained_run, split="val", plots=False, ensemble=[other])
+    # A run saved before a key was added (schema.ADDED_KEYS) has the same interface.
+    del cfg.action.accel_lead
+    cfg.action.scale = OmegaConf.load(trained_run / "config.yaml").action.scale
+    OmegaConf.save(cfg, other / "config.yaml")
+    both = evaluate_run(trained_run, split="val", plots=False, trajectories=0, ensemble=[other])
+    assert both.summary["ensemble"] == [str(other / "checkpoints" / "best.pt")]
     with pytest.raises(ConfigError, match=r"ensemble: flies checkpoints"):
         evaluate_run(trained_run, policy="pure_pursuit", ensemble=[other])
     path = str(trained_run / "checkpoints" / "last.pt")

@@ -122,6 +122,16 @@ def test_a_law_action_with_a_correction_adds_it_to_the_laws_command(scenarios):
         make_scripted_policy("pure_pursuit", corrected)
 
 
+@pytest.mark.parametrize("accel_reach", [0.0, 0.5])
+def test_the_card_names_every_component_of_a_corrected_law_action(scenarios, accel_reach):
+    env = make_env(LAW, f"action.accel_reach={accel_reach}", "action.correction_reach=0.5",
+                   scenarios=scenarios, num_envs=2)  # fmt: skip
+    card = env.action_fn.card()
+    assert len(card["features"]) == env.action_fn.dim == (7 if accel_reach else 6)
+    assert card["features"][-3:] == ["correction.x", "correction.y", "correction.z"]
+    assert "clamp(law + 0.5 * (a" in card["unit"] and card["guidance"]["correction_reach"] == 0.5
+
+
 def test_a_correction_of_reach_two_flies_every_scripted_policy(scenarios):
     n = len(scenarios.split("val"))
     plain = make_env(PLAIN, scenarios=scenarios, num_envs=n, split="val")

@@ -55,24 +55,32 @@ def test_specs_of_every_team_size(team_sets, drone, k, m):
         assert td["defender", "caught"].shape == (3, team, 1)
 
 
+@pytest.mark.parametrize("drone", ["attacker_v8", "defender_v1"])
 @pytest.mark.parametrize(("k", "m"), TEAMS)
-def test_pursuit_accel_blocks_hold_each_other_drones_acceleration(team_sets, k, m):
-    env = make_env("drone=attacker_v8", "observation=pursuit_accel", scenarios=team_sets[k, m],
+def test_pursuit_accel_blocks_hold_each_other_drones_acceleration(team_sets, drone, k, m):
+    env = make_env(f"drone={drone}", "observation=pursuit_accel", scenarios=team_sets[k, m],
                    num_envs=3)  # fmt: skip
     check_env_specs(env, seed=0)
+    attacker = drone.startswith("attacker")
+    team = k if attacker else m
+    obs_key = "observation" if team == 1 else (env.group, "observation")
+    block = 9 + (m > 1)  # p, v, a (and the in-play flag where defenders can leave play)
     td = env.reset()
-    obs_key = "observation" if k == 1 else ("attacker", "observation")
-    block = 9 + (m > 1)  # p, v, a (and the in-play flag)
-    assert td[obs_key].shape[-1] == 4 + block * (m + k - 1)
+    assert td[obs_key].shape[-1] == 4 + block * (k + m - 1)
     action = torch.full(env.full_action_spec[env.action_key].shape, 0.5)
     td = env.step(td.set(env.action_key, action))["next"]
-    obs = td[obs_key].reshape(3, k, -1)
+    obs = td[obs_key].reshape(3, team, -1)
     a = td["accelerations"]  # (3, k + m, 3): attackers first
-    for i in range(k):
-        others = [k + j for j in range(m)] + [j for j in range(k) if j != i]
+    for i in range(team):
+        own = i if attacker else k + i
+        opponents = range(k, k + m) if attacker else range(k)
+        mates = range(k) if attacker else range(k, k + m)
+        others = [*opponents, *(d for d in mates if d != own)]
         for b, d in enumerate(others):
             at = 4 + b * block + 6
             torch.testing.assert_close(obs[:, i, at : at + 3], a[:, d])
+    # The drones' accelerations differ: a block read from the wrong drone shows.
+    assert (a - a[:, :1]).abs().amax() > 0.01
 
 
 def test_a_caught_learning_defender_stops_and_earns_nothing_more(team_sets):

@@ -250,8 +250,9 @@ def make_scripted_policy(name: str, env: PursuitEnv, **kwargs: Any) -> TensorDic
 
 class Unguided(nn.Module):
     """A scripted policy flown through a guided action (a correction to proportional
-    navigation, :class:`rlplat.envs.components.GuidedVelocityAction`): the correction that makes
-    the env fly exactly the policy's own command (for the action's ``scale >= 2``)."""
+    navigation, :class:`rlplat.envs.components.GuidedVelocityAction`, or the law's parameters
+    at zero and a correction, ``GuidanceLawAction``): the correction that makes the env fly
+    exactly the policy's own command (for ``scale >= 2``, resp. ``correction_reach >= 2``)."""
 
     def __init__(self, policy: _Scripted, env: PursuitEnv) -> None:
         super().__init__()

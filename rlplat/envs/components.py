@@ -159,8 +159,8 @@ class _Observation:
             blocks = torch.cat([blocks, mates], -2)
         return torch.cat([*self._own(view), blocks.flatten(-2)], -1)  # (*B, dim)
 
-    def _block(self, view: DroneView, position: Tensor, velocity: Tensor, acceleration,
-               in_play) -> Tensor:  # fmt: skip
+    def _block(self, view: DroneView, position: Tensor, velocity: Tensor,
+               acceleration: Tensor | None, in_play: Tensor | None) -> Tensor:  # fmt: skip
         block = self._other(view, position, velocity, acceleration)
         if not self.in_play:
             return block
@@ -170,7 +170,9 @@ class _Observation:
         """The drone's own features, each (*B, 3) (a speed or a time (*B, 1))."""
         return []
 
-    def _other(self, view: DroneView, position: Tensor, velocity: Tensor, acceleration) -> Tensor:
+    def _other(
+        self, view: DroneView, position: Tensor, velocity: Tensor, acceleration: Tensor | None
+    ) -> Tensor:
         """The block of each other drone at ``position``/``velocity``/``acceleration`` (*B, X, 3;
         the acceleration None where the view has none): (*B, X, f)."""
         raise NotImplementedError
@@ -186,7 +188,9 @@ class AbsoluteObservation(_Observation):
     def _own(self, view: DroneView) -> list[Tensor]:
         return [view.own_position, view.own_velocity]
 
-    def _other(self, view: DroneView, position: Tensor, velocity: Tensor, acceleration) -> Tensor:
+    def _other(
+        self, view: DroneView, position: Tensor, velocity: Tensor, acceleration: Tensor | None
+    ) -> Tensor:
         return torch.cat([position, velocity], -1)
 
 
@@ -196,7 +200,9 @@ class RelativePositionObservation(_Observation):
     other_layout = ("p",)
     other_names = ("p_{d} - p_own",)
 
-    def _other(self, view: DroneView, position: Tensor, velocity: Tensor, acceleration) -> Tensor:
+    def _other(
+        self, view: DroneView, position: Tensor, velocity: Tensor, acceleration: Tensor | None
+    ) -> Tensor:
         return position - view.own_position.unsqueeze(-2)
 
 
@@ -212,7 +218,9 @@ class RelativeStateObservation(_Observation):
     def _own(self, view: DroneView) -> list[Tensor]:
         return [view.own_velocity]
 
-    def _other(self, view: DroneView, position: Tensor, velocity: Tensor, acceleration) -> Tensor:
+    def _other(
+        self, view: DroneView, position: Tensor, velocity: Tensor, acceleration: Tensor | None
+    ) -> Tensor:
         own_p, own_v = view.own_position.unsqueeze(-2), view.own_velocity.unsqueeze(-2)
         return torch.cat([position - own_p, velocity - own_v], -1)
 
@@ -258,15 +266,17 @@ class PursuitAccelObservation(PursuitStateObservation):
 
     s = [v_own, max_speed_own, (p_other - p_own, v_other - v_own, a_other) per other drone],
     (*B, 13) with one opponent; a_other is the drone's mean acceleration over the last control
-    period (zero at the first step). A drone's velocity follows its command with a lag, so its
-    acceleration says where its velocity is going: the turn of an evading defender shows there
-    a control period or more before it shows in its velocity.
+    period (zero at the first step). It holds nothing the velocities of two steps do not, but a
+    policy sees one step: a drone's velocity follows its command with a lag, and its
+    acceleration says where that velocity is going, e.g. into an evading defender's turn.
     """
 
     other_layout = ("p", "v", "a")
     other_names = ("p_{d} - p_own", "v_{d} - v_own", "a_{d}")
 
-    def _other(self, view: DroneView, position: Tensor, velocity: Tensor, acceleration) -> Tensor:
+    def _other(
+        self, view: DroneView, position: Tensor, velocity: Tensor, acceleration: Tensor | None
+    ) -> Tensor:
         if acceleration is None:
             raise ValueError("observation pursuit_accel: the view has no acceleration")
         return torch.cat([super()._other(view, position, velocity, acceleration), acceleration], -1)
@@ -521,9 +531,10 @@ class GuidanceLawAction(GuidedVelocityAction):
         return command * speed
 
     def inverse(self, flown: Tensor, guidance: Tensor) -> Tensor:
-        """The action that flies the action ``flown`` (*B, 3) of a plain velocity action under
-        ``guidance``, the zero action's law as an action (*B, 3): the law's parameters at zero
-        and the correction that makes up the difference (exact for ``correction_reach >= 2``)."""
+        """The action (*B, dim) that flies the action ``flown`` (*B, 3) of a plain velocity
+        action under ``guidance``, the zero action's law as an action (*B, 3): the law's
+        ``law_dim`` parameters at zero, then the correction that makes up the difference (exact
+        for ``correction_reach >= 2``)."""
         if not self.invertible:
             raise ConfigError(
                 "action=guidance_law: a scripted policy cannot be flown through it (no action "
@@ -565,7 +576,7 @@ class GuidanceLawAction(GuidedVelocityAction):
             f"{self.lead_reach:g} * a1, 0), max lead time = {self.max_lead_time:g} * "
             f"{self.horizon_factor:g}^a2 s"
             + (f", acceleration lead = {self._accel_term()}" if learned else "")
-            + (f"; {self._correction_term()}" if self.correction_reach > 0 else ""),
+            + (f"; corrected: {self._correction_term()}" if self.correction_reach > 0 else ""),
             "guidance": {
                 **self._law_card(),
                 "gain_factor": self.gain_factor,
@@ -579,7 +590,7 @@ class GuidanceLawAction(GuidedVelocityAction):
     def _correction_term(self) -> str:
         c = f"a{self.law_dim}..a{self.law_dim + 2}"
         return (
-            f"the velocity command is clamp(law + {self.correction_reach:g} * ({c}), -1, 1) x "
+            f"velocity command = clamp(law + {self.correction_reach:g} * ({c}), -1, 1) x "
             "max speed per axis"
         )
 
@@ -590,7 +601,7 @@ class GuidanceLawAction(GuidedVelocityAction):
             f"{self.lead:g} + {self.lead_reach:g} * a1, 0), max lead time {self.max_lead_time:g}"
             f" * {self.horizon_factor:g}^a2 s (rlplat.envs.kinematics.intercept_action).",
             *self._describe_accel(),
-            *([self._correction_term() + "."] if self.correction_reach > 0 else []),
+            *([f"Corrected: {self._correction_term()}."] if self.correction_reach > 0 else []),
         ]
 
 

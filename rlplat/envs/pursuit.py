@@ -541,6 +541,7 @@ class PursuitEnv(EnvBase):
         # otherwise); a compiled step always runs it (no data-dependent branch).
         if flies is not None and (torch.compiler.is_compiling() or bool(flies.any())):
             near = nearest(own_p, p[:, self.attackers])
+            time_left = (self.max_steps - self.step_count) * self.control_period  # (N,) s
             view = DroneView(
                 own_p,
                 own_v,
@@ -548,6 +549,10 @@ class PursuitEnv(EnvBase):
                 gather_drones(v[:, self.attackers], near).unsqueeze(-2),
                 target,
                 own_max_speed=speed,
+                time_left=time_left.to(p.dtype).unsqueeze(1).expand_as(speed),
+                other_acceleration=gather_drones(
+                    self.acceleration[:, self.attackers], near
+                ).unsqueeze(-2),
             )
             # A network defender flies eq. 2 (velocity) actions, whatever the learner's action.
             learned = self.defender_network(view).clamp(-1.0, 1.0) * speed.unsqueeze(-1)

@@ -41,7 +41,11 @@ from rlplat.experiment.factory import (
     eval_num_envs,
     resolve_scenarios,
 )
-from rlplat.experiment.schema import validate_dynamics_swap, validate_evaluate_config
+from rlplat.experiment.schema import (
+    config_diff,
+    validate_dynamics_swap,
+    validate_evaluate_config,
+)
 from rlplat.io import atomic_write_text, sha256_bytes
 from rlplat.scenarios import SPLITS, ScenarioSet
 
@@ -367,7 +371,10 @@ def ensemble_members(
             mine, theirs = (OmegaConf.select(c, key) for c in (cfg, member_cfg))
             if isinstance(mine, DictConfig):
                 mine, theirs = (OmegaConf.to_container(x, resolve=True) for x in (mine, theirs))
-            if mine != theirs:
+            # A key added since one of the runs was saved counts with its neutral value.
+            if config_diff({key: mine}, {key: theirs}, ()) and config_diff(
+                {key: theirs}, {key: mine}, ()
+            ):
                 raise ConfigError(f"ensemble: {run} has {key}={theirs}, run_dir has {key}={mine}")
         members.append((checkpoint_path(Path(run), ckpt), member_cfg))
     return members
