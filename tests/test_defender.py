@@ -177,6 +177,7 @@ def test_a_network_defender_sees_what_its_observation_reads(mixed, tmp_path, obs
 
     def rollout(network):
         env = make_env(f"env.defender_network={network}", scenarios=mixed, split="val", num_envs=16)
+        torch.manual_seed(0)  # the same random attacker actions in both rollouts
         return env.rollout(20, break_when_any_done=False)
 
     reads, blind = rollout(tmp_path / "reads.pt"), rollout(tmp_path / "blind.pt")
@@ -195,6 +196,7 @@ def test_nn_defenders_fly_the_network(mixed, defender_run, tmp_path):
     def rollout(network):
         env = make_env(f"env.defender_network={network}", scenarios=mixed, split="val", num_envs=16)
         env.set_seed(0)
+        torch.manual_seed(0)  # the attackers' random actions come from torch's global generator
         return env, env.rollout(20, break_when_any_done=False)
 
     env, hover = rollout(tmp_path / "hover.pt")
