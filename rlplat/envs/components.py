@@ -541,8 +541,7 @@ class GuidanceLawAction(GuidedVelocityAction):
                 "gives an arbitrary command; action.correction_reach >= 2 gives one)"
             )
         correction = ((flown - guidance) / self.correction_reach).clamp(-1.0, 1.0)
-        return torch.cat([torch.zeros_like(flown[..., :1]).expand(*flown.shape[:-1], self.law_dim),
-                          correction], -1)  # fmt: skip
+        return torch.cat([flown.new_zeros(*flown.shape[:-1], self.law_dim), correction], -1)
 
     def law(self, action: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """The gain, lead and longest prediction (each (*B, 1)) that ``action`` (*B, 3) sets."""

@@ -541,7 +541,6 @@ class PursuitEnv(EnvBase):
         # otherwise); a compiled step always runs it (no data-dependent branch).
         if flies is not None and (torch.compiler.is_compiling() or bool(flies.any())):
             near = nearest(own_p, p[:, self.attackers])
-            time_left = (self.max_steps - self.step_count) * self.control_period  # (N,) s
             view = DroneView(
                 own_p,
                 own_v,
@@ -549,7 +548,7 @@ class PursuitEnv(EnvBase):
                 gather_drones(v[:, self.attackers], near).unsqueeze(-2),
                 target,
                 own_max_speed=speed,
-                time_left=time_left.to(p.dtype).unsqueeze(1).expand_as(speed),
+                time_left=self._time_left(p.dtype).unsqueeze(1).expand_as(speed),
                 other_acceleration=gather_drones(
                     self.acceleration[:, self.attackers], near
                 ).unsqueeze(-2),
@@ -558,6 +557,10 @@ class PursuitEnv(EnvBase):
             learned = self.defender_network(view).clamp(-1.0, 1.0) * speed.unsqueeze(-1)
             command = torch.where(flies.unsqueeze(-1), learned, command)
         return command
+
+    def _time_left(self, dtype: torch.dtype) -> Tensor:
+        """The time until each env's time limit, (N,) s."""
+        return ((self.max_steps - self.step_count) * self.control_period).to(dtype)
 
     def _attacker_command(self, p: Tensor) -> Tensor:
         """Scripted attackers: pure pursuit of the nearest defender in play, (N, k, 3) m/s."""
@@ -576,10 +579,9 @@ class PursuitEnv(EnvBase):
         other_v = v[:, self.opponents].unsqueeze(1).expand(n, t, -1, 3)
         target, route_done = self._target()
         setpoint = target if self.learner != ATTACKER else target[:, :1].expand(n, t, 3)
-        time_left = (self.max_steps - self.step_count) * self.control_period  # (N,) s
         view = DroneView(own_p, own_v, other_p, other_v, setpoint,
                          own_max_speed=self.max_speed[:, self.team],
-                         time_left=time_left.to(p.dtype).unsqueeze(1).expand(n, t))  # fmt: skip
+                         time_left=self._time_left(p.dtype).unsqueeze(1).expand(n, t))  # fmt: skip
         if t > 1:
             view = replace(view, mate_position=own_p[:, self._mate_index],
                            mate_velocity=own_v[:, self._mate_index])  # fmt: skip
