@@ -132,3 +132,45 @@ def test_pool_counts_every_episode_of_every_run(tmp_path):
     assert learned["ceiling"] == 0.5 and learned["capture_rate_covered"] == 2 / 4
     assert pn["episodes"] == 3 and pn["capture_rate"] == 1 / 3
     assert "| attacker_v4 (best) | 2 | 6 | 0.500 [" in markdown(rows)
+
+
+def test_headroom_splits_the_scenarios_and_counts_a_capture_of_any_policy(tmp_path, capsys):
+    import json
+
+    from rlplat.errors import ConfigError
+    from rlplat.eval.pool import headroom_rows, main
+
+    def evaluation(run, name, policy, captured, digest="d0"):
+        out = tmp_path / run / "eval" / f"test-{name}"
+        out.mkdir(parents=True)
+        summary = {"policy": policy, "name": name, "drone": "attacker_v8",
+                   "scenario_digest": digest, "speed_ratio_bins": [1.0]}  # fmt: skip
+        (out / "summary.json").write_text(json.dumps(summary))
+        rows = [
+            "scenario_id,defender_strategy,speed_ratio,interceptable,captured,time_to_capture_s"
+        ]
+        scenarios = [("nn", 0.5, ""), ("nn", 2.0, ""), ("setpoints", 0.5, "1"),
+                     ("setpoints", 0.5, "0"), ("setpoints", 1.0, "1")]  # fmt: skip
+        for i, ((strategy, ratio, bound), c) in enumerate(zip(scenarios, captured, strict=True)):
+            rows.append(f"s{i},{strategy},{ratio},{bound},{c},{'9' if c else ''}")
+        (out / "episodes.csv").write_text("\n".join(rows) + "\n")
+
+    evaluation("s0", "best", "checkpoint", [1, 1, 0, 0, 1])
+    evaluation("s1", "best", "checkpoint", [0, 1, 0, 0, 1])
+    evaluation("s0", "proportional_navigation", "proportional_navigation", [0, 1, 1, 0, 0])
+    pooled = headroom_rows([tmp_path / "s0", tmp_path / "s1"])
+    rows = {(r["defender"], r["speed_ratio"]): r for r in pooled}
+    groups = [("all", "all"), ("nn", "all"), ("nn", "<1"), ("nn", ">=1"),
+              ("setpoints", "all"), ("setpoints", "<1"), ("setpoints", ">=1")]  # fmt: skip
+    assert list(rows) == groups
+    everything, slow = rows["all", "all"], rows["setpoints", "<1"]
+    assert everything["scenarios"] == 5 and everything["ceiling"] is None  # nn: no ceiling
+    assert everything["any"] == 4 / 5  # only s3 was never captured
+    assert everything["rates"] == {"attacker_v8 (best)": 5 / 10, "proportional_navigation": 2 / 5}
+    assert slow["scenarios"] == 2 and slow["ceiling"] == 0.5 and slow["any"] == 0.5
+    assert slow["rates"]["attacker_v8 (best)"] == 0.0 and rows["nn", "<1"]["any"] == 1.0
+    main([str(tmp_path / "s0"), "--headroom"])
+    assert "| setpoints | <1 | 2 | 0.500 | 0.500 | 0.000 | 0.500 |" in capsys.readouterr().out
+    evaluation("s2", "best", "checkpoint", [0, 0, 0, 0, 0], digest="d1")
+    with pytest.raises(ConfigError, match="2 scenario sets"):
+        headroom_rows([tmp_path / "s0", tmp_path / "s2"])

@@ -6,6 +6,12 @@ Markdown row per policy: the episodes of all runs pooled (capture rate with its 
 interval, mean and median time to capture) and, where the evaluations report the capture
 ceiling, the capture rate on the scenarios it covers against it. Seeds of one configuration
 fly the same scenarios, so a scripted baseline's rows repeat the same episodes once per run.
+
+With ``--headroom`` a second table splits the scenarios by defender strategy and speed-ratio
+bin: per group the capture ceiling (where it is defined), the fraction of scenarios that at
+least one episode of any policy and run captured (a capture shown possible), and each policy's
+pooled capture rate. The gap between a policy and the ceiling or the best of all is where
+there is something left to win.
 """
 
 from __future__ import annotations
@@ -22,7 +28,7 @@ import numpy as np
 from rlplat.cli import exit_on_error
 from rlplat.errors import ConfigError
 from rlplat.eval.compare import _learned, num
-from rlplat.eval.metrics import wilson_interval
+from rlplat.eval.metrics import speed_ratio_bin, speed_ratio_labels, wilson_interval
 from rlplat.scenarios import SPLITS
 
 
@@ -32,24 +38,120 @@ def _label(summary: dict[str, Any]) -> str:
 
 def pooled_rows(run_dirs: list[Path], split: str = "test") -> list[dict[str, Any]]:
     """Per policy (learned ones first, in the order met), the pooled outcome of its episodes."""
+    episodes, runs, _ = _read(run_dirs, split)
+    return [_pool(label, runs[label], rows) for label, rows in episodes.items()]
+
+
+def _read(
+    run_dirs: list[Path], split: str
+) -> tuple[dict[str, list[dict[str, str]]], dict[str, int], list[dict[str, Any]]]:
+    """Every evaluation of ``split`` under the runs: episodes and run count per policy (learned
+    ones first, in the order met), and the evaluations' summaries."""
     if split not in SPLITS:
         raise ConfigError(f"split: unknown '{split}'; valid: {', '.join(SPLITS)}")
     episodes: dict[str, list[dict[str, str]]] = defaultdict(list)
     runs: dict[str, int] = defaultdict(int)
     learned: dict[str, bool] = {}
+    summaries: list[dict[str, Any]] = []
     for run_dir in run_dirs:
         paths = sorted(Path(run_dir).glob(f"eval/{split}-*/summary.json"))
         if not paths:
             raise ConfigError(f"pool: no evaluation of the {split} split under {run_dir}/eval")
         for path in paths:
             summary = json.loads(path.read_text())
+            summaries.append(summary)
             label = _label(summary)
             learned[label] = _learned(summary)
             runs[label] += 1
             with open(path.parent / "episodes.csv", newline="") as f:
                 episodes[label].extend(csv.DictReader(f))
     order = sorted(episodes, key=lambda k: (not learned[k], list(episodes).index(k)))
-    return [_pool(label, runs[label], episodes[label]) for label in order]
+    return {label: episodes[label] for label in order}, runs, summaries
+
+
+def _captured(row: dict[str, str]) -> bool:
+    return row["captured"] in ("1", "True", "true")
+
+
+def headroom_rows(run_dirs: list[Path], split: str = "test") -> list[dict[str, Any]]:
+    """Per group of scenarios (all; each defender strategy; each strategy and speed-ratio bin of
+    the evaluations), ``scenarios``, ``ceiling`` (None where no scenario of the group has one),
+    ``any`` (the fraction some episode captured) and ``rates`` (policy -> pooled capture rate).
+
+    Every evaluation must be of the same scenario set (its digest) with the same bins.
+    """
+    episodes, _, summaries = _read(run_dirs, split)
+    digests = {s.get("scenario_digest") for s in summaries}
+    if len(digests) > 1:
+        raise ConfigError(
+            f"pool --headroom: the evaluations fly {len(digests)} scenario sets; "
+            "pool the runs of one set"
+        )
+    edges = {tuple(s.get("speed_ratio_bins", ())) for s in summaries}
+    if len(edges) > 1:
+        raise ConfigError(f"pool --headroom: the evaluations bin differently: {sorted(edges)}")
+    (bins,) = edges
+    labels = speed_ratio_labels(bins) if bins else []
+    scenarios: dict[str, list[tuple[str, str]]] = {}
+    bound: dict[str, bool | None] = {}
+    captured: dict[str, bool] = defaultdict(bool)
+    for rows in episodes.values():
+        for r in rows:
+            sid = r["scenario_id"]
+            captured[sid] |= _captured(r)
+            if sid in scenarios:
+                continue
+            strategy = r.get("defender_strategy", "") or "all"
+            groups = [("all", "all"), (strategy, "all")] if strategy != "all" else [("all", "all")]
+            if labels:
+                ratio = float(r["speed_ratio"])
+                groups.append((strategy, labels[int(speed_ratio_bin(np.array([ratio]), bins)[0])]))
+            scenarios[sid] = groups
+            b = r.get("interceptable", "")
+            bound[sid] = None if b in ("", None) else b in ("1", "True", "true")
+    members: dict[tuple[str, str], list[str]] = defaultdict(list)
+    for sid, groups in scenarios.items():
+        for g in groups:
+            members[g].append(sid)
+    out = []
+    for group, sids in members.items():
+        inside = set(sids)
+        known = [bound[s] for s in sids if bound[s] is not None]
+        rates = {}
+        for label, rows in episodes.items():
+            flown = [_captured(r) for r in rows if r["scenario_id"] in inside]
+            rates[label] = float(np.mean(flown)) if flown else None
+        out.append({
+            "defender": group[0],
+            "speed_ratio": group[1],
+            "scenarios": len(sids),
+            "ceiling": float(np.mean(known)) if len(known) == len(sids) else None,
+            "any": float(np.mean([captured[s] for s in sids])),
+            "rates": rates,
+        })  # fmt: skip
+    order = ["all", *labels]
+    out.sort(key=lambda r: (r["defender"] != "all", r["defender"], order.index(r["speed_ratio"])))
+    return out
+
+
+def headroom_markdown(rows: list[dict[str, Any]]) -> str:
+    """The headroom table as Markdown: one column per policy after the ceiling and the best of
+    all."""
+    policies = list(rows[0]["rates"]) if rows else []
+    lines = [
+        "| defender | speed ratio | scenarios | ceiling | captured by any | "
+        + " | ".join(policies)
+        + " |",
+        "|---|---|---|---|---|" + "---|" * len(policies),
+    ]
+    for r in rows:
+        cells = [num(r["rates"][p]) if r["rates"][p] is not None else "–" for p in policies]
+        ceiling = num(r["ceiling"]) if r["ceiling"] is not None else "–"
+        lines.append(
+            f"| {r['defender']} | {r['speed_ratio']} | {r['scenarios']} | {ceiling} | "
+            f"{num(r['any'])} | " + " | ".join(cells) + " |"
+        )
+    return "\n".join(lines)
 
 
 def _pool(label: str, runs: int, rows: list[dict[str, str]]) -> dict[str, Any]:
@@ -102,8 +204,17 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("run_dirs", nargs="+", type=Path, help="training run directories")
     parser.add_argument("--split", default="test", help="test | val | train (default: test)")
+    parser.add_argument(
+        "--headroom",
+        action="store_true",
+        help="also split the scenarios by defender strategy and speed ratio: the ceiling, the "
+        "best of all policies and runs, and each policy",
+    )
     args = parser.parse_args(argv)
     print(markdown(pooled_rows(args.run_dirs, args.split)))
+    if args.headroom:
+        print()
+        print(headroom_markdown(headroom_rows(args.run_dirs, args.split)))
 
 
 if __name__ == "__main__":
