@@ -154,11 +154,13 @@ def test_shipped_defender_is_what_its_card_says():
 
 
 @pytest.mark.parametrize(
-    ("observation", "columns"), [("pursuit_accel", [10, 11, 12]), ("pursuit_clock", [4])]
+    ("observation", "columns"),
+    [("pursuit_accel", [10, 11, 12]), ("pursuit_clock", [4]), ("pursuit_world", [4, 5, 6])],
 )
 def test_a_network_defender_sees_what_its_observation_reads(mixed, tmp_path, observation, columns):
-    # A network on an observation that reads the attacker's acceleration or the time left, made
-    # from the shipped one: only those features reach its first layer.
+    # A network on an observation that reads the attacker's acceleration, the time left or the
+    # defender's own world position, made from the shipped one: only those features reach its
+    # first layer.
     state = load_checkpoint(shipped_path(SHIPPED_DEFENDER))
     node = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "observation" / f"{observation}.yaml"))
     obs = OBSERVATIONS[observation](**{k: v for k, v in node.items() if k != "name"})

@@ -316,6 +316,25 @@ def test_pursuit_accel_adds_the_opponents_acceleration_the_env_reports(scenarios
     check_env_specs(env)
 
 
+def test_pursuit_world_adds_where_the_drone_is_on_the_map(scenarios):
+    env = make_env("observation=pursuit_world", scenarios=scenarios, num_envs=5, split="val")
+    state = make_env("observation=pursuit_state", scenarios=scenarios, num_envs=5, split="val")
+    td, base = env.reset(), state.reset()
+    assert td["observation"].shape == (5, 13)
+    features = env.obs_fn.features()
+    assert [f["name"] for f in features[4:7]] == ["p_own.x", "p_own.y", "p_own.z"]
+    assert {f["unit"] for f in features[4:7]} == {"m"}
+    assert [f["scale"] for f in features[4:7]] == [50.0] * 3  # world_scale, not position_scale
+    for _ in range(15):
+        # The same flight: pursuit_state's features around the attacker's world position.
+        torch.testing.assert_close(td["observation"][:, [0, 1, 2, 3, *range(7, 13)]],
+                                   base["observation"])  # fmt: skip
+        torch.testing.assert_close(td["observation"][:, 4:7], td["positions"][:, 0])
+        td = env.step(td.set("action", torch.ones(5, 3)))["next"]
+        base = state.step(base.set("action", torch.ones(5, 3)))["next"]
+    check_env_specs(env)
+
+
 # The capture ceiling --------------------------------------------------------------------
 
 

@@ -80,13 +80,14 @@ class _Observation:
         velocity_scale: m/s, typical magnitude of a velocity feature.
         time_scale: s, typical magnitude of a time feature.
         accel_scale: m/s^2, typical magnitude of an acceleration feature.
+        world_scale: m, typical magnitude of a position in the world frame (a "w" feature).
         opponents: M, opponents the drone sees (set by the env factory from the scenarios).
         mates: K, team-mates the drone sees (set by the env factory from the scenarios).
         in_play: add each other drone's in-play flag (set by the env factory where defenders
             can leave play before the episode ends: more than one of them).
     """
 
-    own_layout: tuple[str, ...] = ()  # "p"/"v" per 3-vector, "s" per speed, "t" per time
+    own_layout: tuple[str, ...] = ()  # "p"/"v"/"w" per 3-vector, "s" per speed, "t" per time
     other_layout: tuple[str, ...] = ()  # "p", "v" or "a" per 3-vector of each other drone's block
     own_names: tuple[str, ...] = ()  # what each own 3-vector is (same order as own_layout)
     other_names: tuple[str, ...] = ()  # each other drone's, "{d}" standing for that drone
@@ -98,12 +99,14 @@ class _Observation:
         velocity_scale: float = 5.0,
         time_scale: float = 60.0,
         accel_scale: float = 5.0,
+        world_scale: float = 50.0,
         opponents: int = 1,
         mates: int = 0,
         in_play: bool = False,
     ) -> None:
         scales = {"position_scale": position_scale, "velocity_scale": velocity_scale,
-                  "time_scale": time_scale, "accel_scale": accel_scale}  # fmt: skip
+                  "time_scale": time_scale, "accel_scale": accel_scale,
+                  "world_scale": world_scale}  # fmt: skip
         for name, v in scales.items():
             if not v > 0:
                 raise ConfigError(f"observation.{name}: must be > 0, got {v}")
@@ -118,6 +121,7 @@ class _Observation:
             "p": [float(position_scale)] * 3,
             "v": [float(velocity_scale)] * 3,
             "a": [float(accel_scale)] * 3,
+            "w": [float(world_scale)] * 3,
             "s": [float(velocity_scale)],
             "t": [float(time_scale)],
             "f": [1.0],
@@ -129,8 +133,8 @@ class _Observation:
         """What each of the ``dim`` features is: ``name`` (e.g. ``(p_opponent0 - p_own).x``),
         ``unit`` (``m``, ``m/s``, ``m/s^2``, ``s`` or ``1`` for an in-play flag) and ``scale``,
         in order."""
-        kinds = {"p": ("m", 3), "v": ("m/s", 3), "a": ("m/s^2", 3), "s": ("m/s", 1), "t": ("s", 1),
-                 "f": ("1", 1)}  # fmt: skip
+        kinds = {"p": ("m", 3), "w": ("m", 3), "v": ("m/s", 3), "a": ("m/s^2", 3),
+                 "s": ("m/s", 1), "t": ("s", 1), "f": ("1", 1)}  # fmt: skip
         named = list(zip(self.own_names, self.own_layout, strict=True))
         others = [f"opponent{i}" for i in range(self.opponents)]
         others += [f"mate{j}" for j in range(self.mates)]
@@ -282,6 +286,23 @@ class PursuitAccelObservation(PursuitStateObservation):
         return torch.cat([super()._other(view, position, velocity, acceleration), acceleration], -1)
 
 
+class PursuitWorldObservation(PursuitStateObservation):
+    """``pursuit_state`` and where the drone is in the world.
+
+    s = [v_own, max_speed_own, p_own, (p_other - p_own, v_other - v_own) per other drone],
+    (*B, 13) with one opponent; p_own is the drone's position in the world frame (ENU, m), so
+    p_own + (p_other - p_own) is where the other drone is. Defenders fly the scenario family's
+    routes, which are the same in every episode: a policy that knows where a defender is on
+    the map can learn where its route takes it next, which a law of relative states cannot.
+    """
+
+    own_layout = ("v", "s", "w")
+    own_names = ("v_own", "max_speed_own", "p_own")
+
+    def _own(self, view: DroneView) -> list[Tensor]:
+        return [*super()._own(view), view.own_position]
+
+
 class RouteStateObservation(RelativeStateObservation):
     """What a route-flying defender needs: its own velocity, the way to its next setpoint and
     each other drone's relative state.
@@ -304,6 +325,7 @@ OBSERVATIONS = {
     "pursuit_state": PursuitStateObservation,
     "pursuit_clock": PursuitClockObservation,
     "pursuit_accel": PursuitAccelObservation,
+    "pursuit_world": PursuitWorldObservation,
     "route_state": RouteStateObservation,
 }
 

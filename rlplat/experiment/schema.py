@@ -243,6 +243,7 @@ OBSERVATION_KNOBS: dict[str, Rule] = {
     "velocity_scale": POSITIVE,
     "time_scale": POSITIVE,
     "accel_scale": POSITIVE,
+    "world_scale": POSITIVE,
 }
 #: Knobs of the actions (conf/action/).
 ACTION_KNOBS: dict[str, Rule] = {
