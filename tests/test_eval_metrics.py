@@ -140,11 +140,12 @@ def test_headroom_splits_the_scenarios_and_counts_a_capture_of_any_policy(tmp_pa
     from rlplat.errors import ConfigError
     from rlplat.eval.pool import headroom_rows, main
 
-    def evaluation(run, name, policy, captured, digest="d0"):
+    def evaluation(run, name, policy, captured, digest="d0", attackers=1):
         out = tmp_path / run / "eval" / f"test-{name}"
         out.mkdir(parents=True)
         summary = {"policy": policy, "name": name, "drone": "attacker_v8",
-                   "scenario_digest": digest, "speed_ratio_bins": [1.0]}  # fmt: skip
+                   "scenario_digest": digest, "speed_ratio_bins": [1.0],
+                   "attackers": attackers}  # fmt: skip
         (out / "summary.json").write_text(json.dumps(summary))
         rows = [
             "scenario_id,defender_strategy,speed_ratio,interceptable,captured,time_to_capture_s"
@@ -174,3 +175,6 @@ def test_headroom_splits_the_scenarios_and_counts_a_capture_of_any_policy(tmp_pa
     evaluation("s2", "best", "checkpoint", [0, 0, 0, 0, 0], digest="d1")
     with pytest.raises(ConfigError, match="2 scenario sets"):
         headroom_rows([tmp_path / "s0", tmp_path / "s2"])
+    evaluation("s3", "best", "checkpoint", [1, 1, 1, 1, 1], attackers=2)  # the same set, a team
+    with pytest.raises(ConfigError, match=r"\[1, 2\] attackers"):
+        headroom_rows([tmp_path / "s0", tmp_path / "s3"])

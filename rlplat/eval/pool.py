@@ -75,10 +75,10 @@ def _captured(row: dict[str, str]) -> bool:
 
 def headroom_rows(run_dirs: list[Path], split: str = "test") -> list[dict[str, Any]]:
     """Per group of scenarios (all; each defender strategy; each strategy and speed-ratio bin of
-    the evaluations), ``scenarios``, ``ceiling`` (None where no scenario of the group has one),
+    the evaluations), ``scenarios``, ``ceiling`` (None unless every scenario of the group has one),
     ``any`` (the fraction some episode captured) and ``rates`` (policy -> pooled capture rate).
 
-    Every evaluation must be of the same scenario set (its digest) with the same bins.
+    Every evaluation must be of the same scenario set (its digest), team size and bins.
     """
     episodes, _, summaries = _read(run_dirs, split)
     digests = {s.get("scenario_digest") for s in summaries}
@@ -86,6 +86,12 @@ def headroom_rows(run_dirs: list[Path], split: str = "test") -> list[dict[str, A
         raise ConfigError(
             f"pool --headroom: the evaluations fly {len(digests)} scenario sets; "
             "pool the runs of one set"
+        )
+    attackers = {s.get("attackers") for s in summaries}
+    if len(attackers) > 1:
+        raise ConfigError(
+            f"pool --headroom: the evaluations fly {sorted(attackers, key=str)} attackers per "
+            "scenario; pool evaluations of one team size"
         )
     edges = {tuple(s.get("speed_ratio_bins", ())) for s in summaries}
     if len(edges) > 1:
@@ -155,7 +161,7 @@ def headroom_markdown(rows: list[dict[str, Any]]) -> str:
 
 
 def _pool(label: str, runs: int, rows: list[dict[str, str]]) -> dict[str, Any]:
-    captured = np.array([r["captured"] in ("1", "True", "true") for r in rows])
+    captured = np.array([_captured(r) for r in rows])
     times = np.array([float(r["time_to_capture_s"]) for r in rows if r["time_to_capture_s"]])
     n, k = len(rows), int(captured.sum())
     low, high = wilson_interval(k, n)
