@@ -83,6 +83,21 @@ def test_pursuit_accel_blocks_hold_each_other_drones_acceleration(team_sets, dro
     assert (a - a[:, :1]).abs().amax() > 0.01
 
 
+@pytest.mark.parametrize(("k", "m"), TEAMS)
+def test_pursuit_world_gives_each_attacker_its_own_world_position(team_sets, k, m):
+    env = make_env("drone=attacker_v8", "observation=pursuit_world", scenarios=team_sets[k, m],
+                   num_envs=3)  # fmt: skip
+    check_env_specs(env, seed=0)
+    obs_key = "observation" if k == 1 else (env.group, "observation")
+    td = env.reset()
+    for _ in range(2):
+        obs = td[obs_key].reshape(3, k, -1)
+        assert obs.shape[-1] == 7 + (6 + (m > 1)) * (k + m - 1)  # own: v, max speed, p_own
+        torch.testing.assert_close(obs[..., 4:7], td["positions"][:, :k])  # attackers first
+        action = torch.full(env.full_action_spec[env.action_key].shape, 0.5)
+        td = env.step(td.set(env.action_key, action))["next"]
+
+
 def test_a_caught_learning_defender_stops_and_earns_nothing_more(team_sets):
     env = make_env("drone=defender_v1", scenarios=team_sets[2, 2], split="val", num_envs=16)
     env.set_seed(0)
