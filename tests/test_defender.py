@@ -234,6 +234,7 @@ def test_defender_trains_and_evaluates_through_the_cli(
     assert card["test"]["nn"]["capture_rate"] == pytest.approx(summary["test_capture_rate"])
     assert card["command"].startswith("python -m rlplat.experiment.controller ")
     ev = evaluate_run(run, policy="setpoint_follower", plots=False)
+    assert ev.summary["learner"] == "defender"  # what pool --headroom refuses
     assert card["test"]["setpoint_follower"]["evasion_score"] == ev.summary["evasion_score"]
     assert 0.0 < ev.summary["mean_route_fraction"] <= 1.0
     rows = ev.rows

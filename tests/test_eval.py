@@ -242,6 +242,7 @@ def test_compare_mode_flies_every_baseline_in_one_command(trained_run):
 def test_last_checkpoint_and_a_path(trained_run):
     last = evaluate_run(trained_run, ckpt="last", split="val", plots=False, trajectories=0)
     assert last.out_dir == trained_run / "eval" / "val-last"
+    assert last.summary["learner"] == "attacker"
     path = trained_run / "checkpoints" / "last.pt"
     other = tmp = trained_run / "elsewhere"
     tmp.mkdir(exist_ok=True)

@@ -134,31 +134,33 @@ def test_pool_counts_every_episode_of_every_run(tmp_path):
     assert "| attacker_v4 (best) | 2 | 6 | 0.500 [" in markdown(rows)
 
 
-def test_headroom_splits_the_scenarios_and_counts_a_capture_of_any_policy(tmp_path, capsys):
+def _headroom_evaluation(root, run, name, policy, captured, bounded=True, **summary):
+    """An evaluation of five scenarios as evaluate.py writes it (the columns pool reads)."""
     import json
 
-    from rlplat.errors import ConfigError
+    out = root / run / "eval" / f"test-{name}"
+    out.mkdir(parents=True)
+    summary = {"policy": policy, "name": name, "drone": "attacker_v8", "scenario_digest": "d0",
+               "speed_ratio_bins": [1.0], "attackers": 1, "dynamics": "velocity",
+               **summary}  # fmt: skip
+    (out / "summary.json").write_text(json.dumps(summary))
+    rows = ["scenario_id,defender_strategy,speed_ratio,interceptable,captured,time_to_capture_s"]
+    scenarios = [("nn", 0.5, ""), ("nn", 2.0, ""), ("setpoints", 0.5, "1"),
+                 ("setpoints", 0.5, "0"), ("setpoints", 1.0, "1")]  # fmt: skip
+    for i, ((strategy, ratio, bound), c) in enumerate(zip(scenarios, captured, strict=True)):
+        bound = bound if bounded else ""  # e.g. dynamics without a ceiling
+        rows.append(f"s{i},{strategy},{ratio},{bound},{c},{'9' if c else ''}")
+    (out / "episodes.csv").write_text("\n".join(rows) + "\n")
+
+
+def test_headroom_splits_the_scenarios_and_counts_a_capture_of_any_policy(tmp_path, capsys):
     from rlplat.eval.pool import headroom_rows, main
 
-    def evaluation(run, name, policy, captured, digest="d0", attackers=1):
-        out = tmp_path / run / "eval" / f"test-{name}"
-        out.mkdir(parents=True)
-        summary = {"policy": policy, "name": name, "drone": "attacker_v8",
-                   "scenario_digest": digest, "speed_ratio_bins": [1.0],
-                   "attackers": attackers}  # fmt: skip
-        (out / "summary.json").write_text(json.dumps(summary))
-        rows = [
-            "scenario_id,defender_strategy,speed_ratio,interceptable,captured,time_to_capture_s"
-        ]
-        scenarios = [("nn", 0.5, ""), ("nn", 2.0, ""), ("setpoints", 0.5, "1"),
-                     ("setpoints", 0.5, "0"), ("setpoints", 1.0, "1")]  # fmt: skip
-        for i, ((strategy, ratio, bound), c) in enumerate(zip(scenarios, captured, strict=True)):
-            rows.append(f"s{i},{strategy},{ratio},{bound},{c},{'9' if c else ''}")
-        (out / "episodes.csv").write_text("\n".join(rows) + "\n")
-
-    evaluation("s0", "best", "checkpoint", [1, 1, 0, 0, 1])
-    evaluation("s1", "best", "checkpoint", [0, 1, 0, 0, 1])
-    evaluation("s0", "proportional_navigation", "proportional_navigation", [0, 1, 1, 0, 0])
+    # The first evaluation read records no ceiling: the ceiling comes from the others.
+    _headroom_evaluation(tmp_path, "s0", "best", "checkpoint", [1, 1, 0, 0, 1], bounded=False)
+    _headroom_evaluation(tmp_path, "s1", "best", "checkpoint", [0, 1, 0, 0, 1])
+    _headroom_evaluation(tmp_path, "s1", "proportional_navigation", "proportional_navigation",
+                         [0, 1, 1, 0, 0])  # fmt: skip
     pooled = headroom_rows([tmp_path / "s0", tmp_path / "s1"])
     rows = {(r["defender"], r["speed_ratio"]): r for r in pooled}
     groups = [("all", "all"), ("nn", "all"), ("nn", "<1"), ("nn", ">=1"),
@@ -170,11 +172,31 @@ def test_headroom_splits_the_scenarios_and_counts_a_capture_of_any_policy(tmp_pa
     assert everything["rates"] == {"attacker_v8 (best)": 5 / 10, "proportional_navigation": 2 / 5}
     assert slow["scenarios"] == 2 and slow["ceiling"] == 0.5 and slow["any"] == 0.5
     assert slow["rates"]["attacker_v8 (best)"] == 0.0 and rows["nn", "<1"]["any"] == 1.0
-    main([str(tmp_path / "s0"), "--headroom"])
+    assert (
+        rows["setpoints", ">=1"]["ceiling"] == 1.0 and rows["setpoints", "all"]["ceiling"] == 2 / 3
+    )
+    main([str(tmp_path / "s1"), "--headroom"])
     assert "| setpoints | <1 | 2 | 0.500 | 0.500 | 0.000 | 0.500 |" in capsys.readouterr().out
-    evaluation("s2", "best", "checkpoint", [0, 0, 0, 0, 0], digest="d1")
-    with pytest.raises(ConfigError, match="2 scenario sets"):
-        headroom_rows([tmp_path / "s0", tmp_path / "s2"])
-    evaluation("s3", "best", "checkpoint", [1, 1, 1, 1, 1], attackers=2)  # the same set, a team
-    with pytest.raises(ConfigError, match=r"\[1, 2\] attackers"):
-        headroom_rows([tmp_path / "s0", tmp_path / "s3"])
+
+
+@pytest.mark.parametrize(
+    ("summary", "message"),
+    [
+        ({"scenario_digest": "d1"}, "2 scenario sets"),
+        ({"attackers": 2}, "2 team sizes"),
+        ({"dynamics": "quadrotor"}, "2 dynamics"),
+        ({"speed_ratio_bins": [0.5, 1.0]}, "bin differently"),
+        ({"learner": "defender"}, "a defender"),
+        ({"policy": "setpoint_follower"}, "a defender"),  # a defender learner's baseline
+    ],
+)
+def test_headroom_pools_only_what_one_attacker_table_can_hold(tmp_path, summary, message):
+    from rlplat.errors import ConfigError
+    from rlplat.eval.pool import headroom_rows
+
+    _headroom_evaluation(tmp_path, "s0", "best", "checkpoint", [1, 1, 0, 0, 1])
+    summary = dict(summary)
+    policy = summary.pop("policy", "checkpoint")
+    _headroom_evaluation(tmp_path, "s1", "best", policy, [1, 1, 1, 1, 1], **summary)
+    with pytest.raises(ConfigError, match=message):
+        headroom_rows([tmp_path / "s0", tmp_path / "s1"])

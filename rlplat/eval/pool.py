@@ -8,10 +8,11 @@ ceiling, the capture rate on the scenarios it covers against it. Seeds of one co
 fly the same scenarios, so a scripted baseline's rows repeat the same episodes once per run.
 
 With ``--headroom`` a second table splits the scenarios by defender strategy and speed-ratio
-bin: per group the capture ceiling (where it is defined), the fraction of scenarios that at
-least one episode of any policy and run captured (a capture shown possible), and each policy's
-pooled capture rate. The gap between a policy and the ceiling or the best of all is where
-there is something left to win.
+bin (of the first attacker and defender, as ``episodes.csv`` records them): per group the
+capture ceiling (where it is defined), the fraction of scenarios that at least one episode of
+any policy and run captured ("captured by any": a capture shown possible, not a bound), and
+each policy's pooled capture rate. The gap between a policy and the ceiling or "captured by
+any" is where there is something left to win.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from rlplat.agents.policies import POLICIES
 from rlplat.cli import exit_on_error
 from rlplat.errors import ConfigError
 from rlplat.eval.compare import _learned, num
@@ -75,24 +77,30 @@ def _captured(row: dict[str, str]) -> bool:
 
 def headroom_rows(run_dirs: list[Path], split: str = "test") -> list[dict[str, Any]]:
     """Per group of scenarios (all; each defender strategy; each strategy and speed-ratio bin of
-    the evaluations), ``scenarios``, ``ceiling`` (None unless every scenario of the group has one),
-    ``any`` (the fraction some episode captured) and ``rates`` (policy -> pooled capture rate).
+    the evaluations, by the first attacker and defender), ``scenarios``, ``ceiling`` (None
+    unless every scenario of the group has one), ``any`` (the fraction that some episode
+    captured) and ``rates`` (policy -> pooled capture rate).
 
-    Every evaluation must be of the same scenario set (its digest), team size and bins.
+    Every evaluation must fly attackers (a learned or scripted one, not a defender learner's),
+    on the same scenario set (its digest), team size, dynamics and bins.
     """
     episodes, _, summaries = _read(run_dirs, split)
-    digests = {s.get("scenario_digest") for s in summaries}
-    if len(digests) > 1:
-        raise ConfigError(
-            f"pool --headroom: the evaluations fly {len(digests)} scenario sets; "
-            "pool the runs of one set"
-        )
-    attackers = {s.get("attackers") for s in summaries}
-    if len(attackers) > 1:
-        raise ConfigError(
-            f"pool --headroom: the evaluations fly {sorted(attackers, key=str)} attackers per "
-            "scenario; pool evaluations of one team size"
-        )
+    for s in summaries:
+        scripted = POLICIES.get(s.get("policy"))
+        role = scripted.role if scripted else s.get("learner", "attacker")
+        if role != "attacker":
+            raise ConfigError(
+                f"pool --headroom: {s.get('run_dir')} evaluates {s.get('name')}, a {role}; "
+                "the headroom is an attacker's"
+            )
+    for key, what in (("scenario_digest", "scenario sets"), ("attackers", "team sizes"),
+                      ("dynamics", "dynamics")):  # fmt: skip
+        values = {s.get(key) for s in summaries}
+        if len(values) > 1:
+            raise ConfigError(
+                f"pool --headroom: the evaluations fly {len(values)} {what} "
+                f"({key}: {', '.join(sorted(map(str, values)))}); pool evaluations of one"
+            )
     edges = {tuple(s.get("speed_ratio_bins", ())) for s in summaries}
     if len(edges) > 1:
         raise ConfigError(f"pool --headroom: the evaluations bin differently: {sorted(edges)}")
@@ -113,8 +121,11 @@ def headroom_rows(run_dirs: list[Path], split: str = "test") -> list[dict[str, A
                 ratio = float(r["speed_ratio"])
                 groups.append((strategy, labels[int(speed_ratio_bin(np.array([ratio]), bins)[0])]))
             scenarios[sid] = groups
+    for rows in episodes.values():  # the first evaluation that bounds a scenario
+        for r in rows:
             b = r.get("interceptable", "")
-            bound[sid] = None if b in ("", None) else b in ("1", "True", "true")
+            if bound.get(r["scenario_id"]) is None and b not in ("", None):
+                bound[r["scenario_id"]] = b in ("1", "True", "true")
     members: dict[tuple[str, str], list[str]] = defaultdict(list)
     for sid, groups in scenarios.items():
         for g in groups:
@@ -122,7 +133,7 @@ def headroom_rows(run_dirs: list[Path], split: str = "test") -> list[dict[str, A
     out = []
     for group, sids in members.items():
         inside = set(sids)
-        known = [bound[s] for s in sids if bound[s] is not None]
+        known = [bound[s] for s in sids if bound.get(s) is not None]
         rates = {}
         for label, rows in episodes.items():
             flown = [_captured(r) for r in rows if r["scenario_id"] in inside]
@@ -141,8 +152,8 @@ def headroom_rows(run_dirs: list[Path], split: str = "test") -> list[dict[str, A
 
 
 def headroom_markdown(rows: list[dict[str, Any]]) -> str:
-    """The headroom table as Markdown: one column per policy after the ceiling and the best of
-    all."""
+    """The headroom table as Markdown: one column per policy after the ceiling and "captured by
+    any"."""
     policies = list(rows[0]["rates"]) if rows else []
     lines = [
         "| defender | speed ratio | scenarios | ceiling | captured by any | "
@@ -151,10 +162,9 @@ def headroom_markdown(rows: list[dict[str, Any]]) -> str:
         "|---|---|---|---|---|" + "---|" * len(policies),
     ]
     for r in rows:
-        cells = [num(r["rates"][p]) if r["rates"][p] is not None else "–" for p in policies]
-        ceiling = num(r["ceiling"]) if r["ceiling"] is not None else "–"
+        cells = [num(r["rates"][p]) for p in policies]
         lines.append(
-            f"| {r['defender']} | {r['speed_ratio']} | {r['scenarios']} | {ceiling} | "
+            f"| {r['defender']} | {r['speed_ratio']} | {r['scenarios']} | {num(r['ceiling'])} | "
             f"{num(r['any'])} | " + " | ".join(cells) + " |"
         )
     return "\n".join(lines)
@@ -214,7 +224,7 @@ def main(argv: list[str] | None = None) -> None:
         "--headroom",
         action="store_true",
         help="also split the scenarios by defender strategy and speed ratio: the ceiling, the "
-        "best of all policies and runs, and each policy",
+        "fraction some policy and run captured, and each policy",
     )
     args = parser.parse_args(argv)
     print(markdown(pooled_rows(args.run_dirs, args.split)))

@@ -330,6 +330,7 @@ def evaluate_run(
         "split": split,
         "run_dir": str(run_dir),
         "drone": cfg.drone.name,
+        "learner": cfg.drone.learner,
         "dynamics": cfg.dynamics.name,
         "seed": cfg.seed,
         "scenarios": n,
