@@ -71,8 +71,13 @@ def _read(
     return {label: episodes[label] for label in order}, runs, summaries
 
 
+def _flag(value: str | None) -> bool:
+    """A boolean cell of ``episodes.csv``."""
+    return value in ("1", "True", "true")
+
+
 def _captured(row: dict[str, str]) -> bool:
-    return row["captured"] in ("1", "True", "true")
+    return _flag(row["captured"])
 
 
 def headroom_rows(run_dirs: list[Path], split: str = "test") -> list[dict[str, Any]]:
@@ -107,12 +112,14 @@ def headroom_rows(run_dirs: list[Path], split: str = "test") -> list[dict[str, A
     (bins,) = edges
     labels = speed_ratio_labels(bins) if bins else []
     scenarios: dict[str, list[tuple[str, str]]] = {}
-    bound: dict[str, bool | None] = {}
+    bound: dict[str, bool] = {}  # from the first evaluation that bounds the scenario
     captured: dict[str, bool] = defaultdict(bool)
     for rows in episodes.values():
         for r in rows:
             sid = r["scenario_id"]
             captured[sid] |= _captured(r)
+            if sid not in bound and r.get("interceptable", "") not in ("", None):
+                bound[sid] = _flag(r["interceptable"])
             if sid in scenarios:
                 continue
             strategy = r.get("defender_strategy", "") or "all"
@@ -121,11 +128,6 @@ def headroom_rows(run_dirs: list[Path], split: str = "test") -> list[dict[str, A
                 ratio = float(r["speed_ratio"])
                 groups.append((strategy, labels[int(speed_ratio_bin(np.array([ratio]), bins)[0])]))
             scenarios[sid] = groups
-    for rows in episodes.values():  # the first evaluation that bounds a scenario
-        for r in rows:
-            b = r.get("interceptable", "")
-            if bound.get(r["scenario_id"]) is None and b not in ("", None):
-                bound[r["scenario_id"]] = b in ("1", "True", "true")
     members: dict[tuple[str, str], list[str]] = defaultdict(list)
     for sid, groups in scenarios.items():
         for g in groups:
@@ -133,7 +135,7 @@ def headroom_rows(run_dirs: list[Path], split: str = "test") -> list[dict[str, A
     out = []
     for group, sids in members.items():
         inside = set(sids)
-        known = [bound[s] for s in sids if bound.get(s) is not None]
+        known = [bound[s] for s in sids if s in bound]
         rates = {}
         for label, rows in episodes.items():
             flown = [_captured(r) for r in rows if r["scenario_id"] in inside]
@@ -187,8 +189,7 @@ def _pool(label: str, runs: int, rows: list[dict[str, str]]) -> dict[str, Any]:
     bound = [r.get("interceptable", "") for r in rows]
     covered = np.array([b not in ("", None) for b in bound])
     if covered.any():
-        out["ceiling"] = float(np.mean([bound[i] in ("1", "True", "true") for i in
-                                        np.flatnonzero(covered)]))  # fmt: skip
+        out["ceiling"] = float(np.mean([_flag(bound[i]) for i in np.flatnonzero(covered)]))
         out["capture_rate_covered"] = float(captured[covered].mean())
     return out
 

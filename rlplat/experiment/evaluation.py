@@ -373,9 +373,7 @@ def ensemble_members(
             if isinstance(mine, DictConfig):
                 mine, theirs = (OmegaConf.to_container(x, resolve=True) for x in (mine, theirs))
             # A key added since one of the runs was saved counts with its neutral value.
-            if config_diff({key: mine}, {key: theirs}, ()) and config_diff(
-                {key: theirs}, {key: mine}, ()
-            ):
+            if config_diff({key: mine}, {key: theirs}, ()):
                 raise ConfigError(f"ensemble: {run} has {key}={theirs}, run_dir has {key}={mine}")
         members.append((checkpoint_path(Path(run), ckpt), member_cfg))
     return members

@@ -563,10 +563,12 @@ def config_diff(
 ) -> list[str]:
     """Dotted keys whose values differ between two resolved configs (added, removed or
     changed; a list is one value), but for those ``ignore`` matches (``RESUME_FREE``), sorted.
-    A key of ``ADDED_KEYS`` that the saved config lacks counts as saved with its value."""
+    A key of ``ADDED_KEYS`` that one config lacks and the other has counts with its value
+    there (a config saved before the key existed)."""
     ignore = tuple(ignore)
     a, b = _flat(saved), _flat(current)
     a.update({k: v for k, v in ADDED_KEYS.items() if k not in a and k in b})
+    b.update({k: v for k, v in ADDED_KEYS.items() if k not in b and k in a})
     keys = (k for k in a.keys() | b.keys() if not _ignored(k, ignore))
     return sorted(k for k in keys if not _same(a.get(k, MISSING), b.get(k, MISSING)))
 
