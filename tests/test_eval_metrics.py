@@ -134,8 +134,9 @@ def test_pool_counts_every_episode_of_every_run(tmp_path):
     assert "| attacker_v4 (best) | 2 | 6 | 0.500 [" in markdown(rows)
 
 
-def _headroom_evaluation(root, run, name, policy, captured, bounded=True, **summary):
-    """An evaluation of five scenarios as evaluate.py writes it (the columns pool reads)."""
+def _headroom_evaluation(root, run, name, policy, captured, bounded=True, times=None, **summary):
+    """An evaluation of five scenarios as evaluate.py writes it (the columns pool reads); a
+    capture takes 9 s unless ``times`` says otherwise."""
     import json
 
     out = root / run / "eval" / f"test-{name}"
@@ -147,9 +148,11 @@ def _headroom_evaluation(root, run, name, policy, captured, bounded=True, **summ
     rows = ["scenario_id,defender_strategy,speed_ratio,interceptable,captured,time_to_capture_s"]
     scenarios = [("nn", 0.5, ""), ("nn", 2.0, ""), ("setpoints", 0.5, "1"),
                  ("setpoints", 0.5, "0"), ("setpoints", 1.0, "1")]  # fmt: skip
-    for i, ((strategy, ratio, bound), c) in enumerate(zip(scenarios, captured, strict=True)):
+    times = times or [9] * len(scenarios)
+    cells = zip(scenarios, captured, times, strict=True)
+    for i, ((strategy, ratio, bound), c, t) in enumerate(cells):
         bound = bound if bounded else ""  # e.g. dynamics without a ceiling
-        rows.append(f"s{i},{strategy},{ratio},{bound},{c},{'9' if c else ''}")
+        rows.append(f"s{i},{strategy},{ratio},{bound},{c},{t if c else ''}")
     (out / "episodes.csv").write_text("\n".join(rows) + "\n")
 
 
@@ -200,3 +203,45 @@ def test_headroom_pools_only_what_one_attacker_table_can_hold(tmp_path, summary,
     _headroom_evaluation(tmp_path, "s1", "best", policy, [1, 1, 1, 1, 1], **summary)
     with pytest.raises(ConfigError, match=message):
         headroom_rows([tmp_path / "s0", tmp_path / "s1"])
+
+
+def test_against_sets_each_policy_against_the_reference_scenario_by_scenario(tmp_path, capsys):
+    from rlplat.eval.pool import main, paired_rows
+
+    _headroom_evaluation(tmp_path, "s0", "best", "checkpoint", [1, 1, 0, 0, 1],
+                         times=[8, 10, 0, 0, 20])  # fmt: skip
+    _headroom_evaluation(tmp_path, "s1", "best", "checkpoint", [0, 1, 0, 0, 1],
+                         times=[0, 12, 0, 0, 30])  # fmt: skip
+    _headroom_evaluation(tmp_path, "s1", "proportional_navigation", "proportional_navigation",
+                         [0, 1, 1, 0, 0], times=[0, 14, 5, 0, 0])  # fmt: skip
+    (row,) = paired_rows([tmp_path / "s0", tmp_path / "s1"], "proportional_navigation")
+    # Per scenario the learner's fraction over its two runs: 0.5, 1, 0, 0, 1; the law's 0, 1,
+    # 1, 0, 0. The differences 0.5, 0, -1, 0, 1: mean 0.1, sample variance 2.2 / 4.
+    assert row["policy"] == "attacker_v8 (best)" and row["runs"] == 2 and row["scenarios"] == 5
+    assert row["gain"] == pytest.approx(0.1) and row["sd"] == pytest.approx(0.55**0.5)
+    half = 1.96 * 0.55**0.5 / 5**0.5
+    assert row["ci95"] == pytest.approx((0.1 - half, 0.1 + half))
+    assert (row["gained"], row["lost"]) == (2, 1)
+    # Only s1 was captured by both: the learner in 11 s on average, the law in 14 s.
+    assert row["both_captured"] == 1 and row["time_delta_s"] == pytest.approx(-3.0)
+    main([str(tmp_path / "s0"), str(tmp_path / "s1"), "--against", "proportional_navigation"])
+    assert "| attacker_v8 (best) | 2 | 5 | +0.100 [" in capsys.readouterr().out
+
+
+def test_against_refuses_an_unknown_reference_and_different_scenarios(tmp_path):
+    from rlplat.errors import ConfigError
+    from rlplat.eval.pool import paired_rows
+
+    _headroom_evaluation(tmp_path, "s0", "best", "checkpoint", [1, 1, 0, 0, 1])
+    _headroom_evaluation(tmp_path, "s0", "pure_pursuit", "pure_pursuit", [1, 1, 0, 0, 1])
+    runs = [tmp_path / "s0"]
+    with pytest.raises(ConfigError, match="'proportional_navigation'.*valid: attacker_v8"):
+        paired_rows(runs, "proportional_navigation")
+    _headroom_evaluation(tmp_path, "s1", "best", "checkpoint", [1, 1, 0, 0, 1],
+                         scenario_digest="d1")  # fmt: skip
+    with pytest.raises(ConfigError, match="2 scenario sets"):
+        paired_rows([*runs, tmp_path / "s1"], "pure_pursuit")
+    episodes = tmp_path / "s0" / "eval" / "test-pure_pursuit" / "episodes.csv"
+    episodes.write_text("".join(episodes.read_text().splitlines(keepends=True)[:-1]))
+    with pytest.raises(ConfigError, match="flew 5 scenarios, pure_pursuit 4"):
+        paired_rows(runs, "pure_pursuit")

@@ -13,6 +13,12 @@ capture ceiling (where it is defined), the fraction of scenarios that at least o
 any policy and run captured ("captured by any": a capture shown possible, not a bound), and
 each policy's pooled capture rate. The gap between a policy and the ceiling or "captured by
 any" is where there is something left to win.
+
+With ``--against POLICY`` (e.g. ``proportional_navigation``) a third table sets every other
+policy against that one scenario by scenario: per scenario each policy's capture fraction over
+its runs, the gain as the mean difference over the scenarios with its 95 % interval (normal,
+over scenarios: what another draw of as many scenarios would show), the scenarios gained and
+lost, and the difference of the mean time to capture on the scenarios both captured.
 """
 
 from __future__ import annotations
@@ -71,6 +77,19 @@ def _read(
     return {label: episodes[label] for label in order}, runs, summaries
 
 
+def _one_set(summaries: list[dict[str, Any]], option: str) -> None:
+    """Refuse evaluations of different scenario sets, team sizes or dynamics: their scenario
+    ids name different games."""
+    for key, what in (("scenario_digest", "scenario sets"), ("attackers", "team sizes"),
+                      ("dynamics", "dynamics")):  # fmt: skip
+        values = {s.get(key) for s in summaries}
+        if len(values) > 1:
+            raise ConfigError(
+                f"pool {option}: the evaluations fly {len(values)} {what} "
+                f"({key}: {', '.join(sorted(map(str, values)))}); pool evaluations of one"
+            )
+
+
 def _flag(value: str | None) -> bool:
     """A boolean cell of ``episodes.csv``."""
     return value in ("1", "True", "true")
@@ -98,14 +117,7 @@ def headroom_rows(run_dirs: list[Path], split: str = "test") -> list[dict[str, A
                 f"pool --headroom: {s.get('run_dir')} evaluates {s.get('name')}, a {role}; "
                 "the headroom is an attacker's"
             )
-    for key, what in (("scenario_digest", "scenario sets"), ("attackers", "team sizes"),
-                      ("dynamics", "dynamics")):  # fmt: skip
-        values = {s.get(key) for s in summaries}
-        if len(values) > 1:
-            raise ConfigError(
-                f"pool --headroom: the evaluations fly {len(values)} {what} "
-                f"({key}: {', '.join(sorted(map(str, values)))}); pool evaluations of one"
-            )
+    _one_set(summaries, "--headroom")
     edges = {tuple(s.get("speed_ratio_bins", ())) for s in summaries}
     if len(edges) > 1:
         raise ConfigError(f"pool --headroom: the evaluations bin differently: {sorted(edges)}")
@@ -151,6 +163,90 @@ def headroom_rows(run_dirs: list[Path], split: str = "test") -> list[dict[str, A
     order = ["all", *labels]
     out.sort(key=lambda r: (r["defender"] != "all", r["defender"], order.index(r["speed_ratio"])))
     return out
+
+
+def paired_rows(run_dirs: list[Path], against: str, split: str = "test") -> list[dict[str, Any]]:
+    """Every other policy against ``against``, scenario by scenario: ``gain`` (the mean over
+    scenarios of the policy's capture fraction over its runs minus the reference's) with
+    ``ci95`` and ``sd`` (of the per-scenario difference), ``gained`` and ``lost`` (scenarios
+    where the policy's fraction is above or below the reference's), and ``time_delta_s`` (the
+    mean over the scenarios both captured at least once of the difference of their mean times
+    to capture; None if there are none) with ``both_captured``.
+
+    The evaluations must fly one scenario set, team size and dynamics, every policy all of its
+    scenarios."""
+    episodes, runs, summaries = _read(run_dirs, split)
+    if against not in episodes:
+        raise ConfigError(
+            f"pool --against: no evaluation of '{against}' under the runs; "
+            f"valid: {', '.join(episodes)}"
+        )
+    _one_set(summaries, "--against")
+    per = {label: _per_scenario(rows) for label, rows in episodes.items()}
+    reference = per[against]
+    sids = sorted(reference)
+    out = []
+    for label, outcome in per.items():
+        if label == against:
+            continue
+        if set(outcome) != set(reference):
+            raise ConfigError(
+                f"pool --against: {label} flew {len(outcome)} scenarios, {against} "
+                f"{len(reference)}, not the same ones; evaluate both on one split"
+            )
+        d = np.array([outcome[s][0] - reference[s][0] for s in sids])
+        half = 1.96 * d.std(ddof=1) / np.sqrt(d.size) if d.size > 1 else float("nan")
+        both = [s for s in sids if outcome[s][1] is not None and reference[s][1] is not None]
+        out.append({
+            "policy": label,
+            "runs": runs[label],
+            "against": against,
+            "scenarios": d.size,
+            "gain": float(d.mean()),
+            "ci95": (float(d.mean() - half), float(d.mean() + half)),
+            "sd": float(d.std(ddof=1)) if d.size > 1 else float("nan"),
+            "gained": int((d > 0).sum()),
+            "lost": int((d < 0).sum()),
+            "both_captured": len(both),
+            "time_delta_s": (
+                float(np.mean([outcome[s][1] - reference[s][1] for s in both])) if both else None
+            ),
+        })  # fmt: skip
+    return out
+
+
+def _per_scenario(rows: list[dict[str, str]]) -> dict[str, tuple[float, float | None]]:
+    """Scenario id -> (capture fraction over its episodes, mean time to capture of the captured
+    ones or None)."""
+    flown: dict[str, list[bool]] = defaultdict(list)
+    times: dict[str, list[float]] = defaultdict(list)
+    for r in rows:
+        flown[r["scenario_id"]].append(_captured(r))
+        if _captured(r):
+            times[r["scenario_id"]].append(float(r["time_to_capture_s"]))
+    return {
+        sid: (float(np.mean(f)), float(np.mean(times[sid])) if times[sid] else None)
+        for sid, f in flown.items()
+    }
+
+
+def paired_markdown(rows: list[dict[str, Any]]) -> str:
+    """The paired comparison as Markdown."""
+    against = rows[0]["against"] if rows else "the reference"
+    lines = [
+        f"| policy | runs | scenarios | gain over {against} [95 % CI] | scenarios gained / lost "
+        "| time to capture, where both capture [s] |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        low, high = r["ci95"]
+        delta = r["time_delta_s"]
+        time = f"{delta:+.1f} ({r['both_captured']} scenarios)" if delta is not None else "–"
+        lines.append(
+            f"| {r['policy']} | {r['runs']} | {r['scenarios']} | {r['gain']:+.3f} "
+            f"[{low:+.3f}, {high:+.3f}] | {r['gained']} / {r['lost']} | {time} |"
+        )
+    return "\n".join(lines)
 
 
 def headroom_markdown(rows: list[dict[str, Any]]) -> str:
@@ -227,11 +323,20 @@ def main(argv: list[str] | None = None) -> None:
         help="also split the scenarios by defender strategy and speed ratio: the ceiling, the "
         "fraction some policy and run captured, and each policy",
     )
+    parser.add_argument(
+        "--against",
+        metavar="POLICY",
+        help="also set every other policy against this one (e.g. proportional_navigation), "
+        "scenario by scenario: the gain with its interval, scenarios gained and lost",
+    )
     args = parser.parse_args(argv)
     print(markdown(pooled_rows(args.run_dirs, args.split)))
     if args.headroom:
         print()
         print(headroom_markdown(headroom_rows(args.run_dirs, args.split)))
+    if args.against:
+        print()
+        print(paired_markdown(paired_rows(args.run_dirs, args.against, args.split)))
 
 
 if __name__ == "__main__":
