@@ -228,14 +228,17 @@ def test_compare_mode_flies_every_baseline_in_one_command(trained_run):
         "proportional_navigation",
     ]
     assert "| pure_pursuit | 16 |" in lines[3]
-    table, ceiling = (
+    table, rest = (
         (trained_run / "eval" / "compare-val.md")
         .read_text()
         .split("## Against the capture ceiling")
     )
+    ceiling, paired = rest.split("## Against proportional navigation, scenario by scenario")
     assert table.count("\n| ") == 4  # the header and one row per policy
     # the ceiling table: its header, the scenarios it covers, the ceiling, one row per policy
     assert ceiling.count("\n| ") == 6 and "\n| proportional_navigation |" in ceiling
+    # every other policy against the law, on the 16 validation scenarios
+    assert paired.count("\n| ") == 3 and "| pure_pursuit | 1 | 16 | " in paired
     assert not list((trained_run / "eval" / "val-best").glob("*.png"))  # plots=false
 
 

@@ -184,9 +184,28 @@ def compare(run_dir: str | Path, split: str = "test") -> str:
             "speed per axis, with the dynamics' acceleration limits, can reach the defender at "
             "all, and each policy's capture rate there.\n\n" + ceiling + "\n"
         )
+    figure += _paired_section(run_dir, summaries, split)
     atomic_write_text(out / f"compare-{split}.md", header + table + figure)
     log.info("comparison of %d policies in %s", len(rows), out / f"compare-{split}.md")
     return table
+
+
+def _paired_section(run_dir: Path, summaries: list[dict[str, Any]], split: str) -> str:
+    """Every other policy against proportional navigation scenario by scenario
+    (:func:`rlplat.eval.pool.paired_rows`), where the run holds its evaluation; else ""."""
+    from rlplat.eval.pool import paired_markdown, paired_rows  # pool builds on this module
+
+    law = "proportional_navigation"
+    if len(summaries) < 2 or not any(s.get("policy") == law for s in summaries):
+        return ""
+    rows = paired_rows([run_dir], law, split)
+    return (
+        "\n## Against proportional navigation, scenario by scenario\n\n"
+        "Per scenario each policy's outcome against the law's on the same scenario: the gain "
+        "is the mean difference of the captures, with its 95 % interval over scenarios (what "
+        "another draw of as many scenarios would show); the scenarios gained and lost; the "
+        "difference of the times to capture where both captured.\n\n" + paired_markdown(rows) + "\n"
+    )
 
 
 @exit_on_error
