@@ -228,15 +228,19 @@ def test_against_sets_each_policy_against_the_reference_scenario_by_scenario(tmp
     assert "| attacker_v8 (best) | 2 | 5 | +0.100 [" in capsys.readouterr().out
 
 
-def test_against_refuses_an_unknown_reference_and_different_scenarios(tmp_path):
+def test_against_refuses_an_unknown_reference_and_different_scenarios(tmp_path, capsys):
     from rlplat.errors import ConfigError
-    from rlplat.eval.pool import paired_rows
+    from rlplat.eval.pool import main, paired_rows
 
     _headroom_evaluation(tmp_path, "s0", "best", "checkpoint", [1, 1, 0, 0, 1])
     _headroom_evaluation(tmp_path, "s0", "pure_pursuit", "pure_pursuit", [1, 1, 0, 0, 1])
     runs = [tmp_path / "s0"]
     with pytest.raises(ConfigError, match="'proportional_navigation'.*valid: attacker_v8"):
         paired_rows(runs, "proportional_navigation")
+    with pytest.raises(SystemExit):  # one line on stderr, and no table before it
+        main([str(tmp_path / "s0"), "--against", "proportional_navigation"])
+    out = capsys.readouterr()
+    assert out.out == "" and out.err.count("\n") == 1 and "valid:" in out.err
     _headroom_evaluation(tmp_path, "s1", "best", "checkpoint", [1, 1, 0, 0, 1],
                          scenario_digest="d1")  # fmt: skip
     with pytest.raises(ConfigError, match="2 scenario sets"):

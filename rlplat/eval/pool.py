@@ -330,13 +330,12 @@ def main(argv: list[str] | None = None) -> None:
         "scenario by scenario: the gain with its interval, scenarios gained and lost",
     )
     args = parser.parse_args(argv)
-    print(markdown(pooled_rows(args.run_dirs, args.split)))
+    tables = [markdown(pooled_rows(args.run_dirs, args.split))]  # all checked before any output
     if args.headroom:
-        print()
-        print(headroom_markdown(headroom_rows(args.run_dirs, args.split)))
+        tables.append(headroom_markdown(headroom_rows(args.run_dirs, args.split)))
     if args.against:
-        print()
-        print(paired_markdown(paired_rows(args.run_dirs, args.against, args.split)))
+        tables.append(paired_markdown(paired_rows(args.run_dirs, args.against, args.split)))
+    print("\n\n".join(tables))
 
 
 if __name__ == "__main__":
