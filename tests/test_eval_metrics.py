@@ -245,7 +245,34 @@ def test_against_refuses_an_unknown_reference_and_different_scenarios(tmp_path, 
                          scenario_digest="d1")  # fmt: skip
     with pytest.raises(ConfigError, match="2 scenario sets"):
         paired_rows([*runs, tmp_path / "s1"], "pure_pursuit")
+    _headroom_evaluation(tmp_path, "d0", "best", "checkpoint", [1, 1, 0, 0, 1], learner="defender")
+    _headroom_evaluation(tmp_path, "d0", "pure_pursuit", "pure_pursuit", [1, 1, 0, 0, 1])
+    with pytest.raises(ConfigError, match="a defender; the gain is an attacker's"):
+        paired_rows([tmp_path / "d0"], "pure_pursuit")
     episodes = tmp_path / "s0" / "eval" / "test-pure_pursuit" / "episodes.csv"
     episodes.write_text("".join(episodes.read_text().splitlines(keepends=True)[:-1]))
     with pytest.raises(ConfigError, match="flew 5 scenarios, pure_pursuit 4"):
         paired_rows(runs, "pure_pursuit")
+
+
+def test_compare_sets_policies_against_the_law_only_where_one_game_was_flown(tmp_path):
+    import json
+
+    from rlplat.eval.compare import _paired_section
+
+    run = tmp_path / "s0"
+    _headroom_evaluation(tmp_path, "s0", "best", "checkpoint", [1, 1, 0, 0, 1])
+    _headroom_evaluation(tmp_path, "s0", "proportional_navigation", "proportional_navigation",
+                         [0, 1, 1, 0, 0])  # fmt: skip
+
+    def summaries():
+        return [json.loads(p.read_text()) for p in sorted(run.glob("eval/test-*/summary.json"))]
+
+    section = _paired_section(run, summaries(), "test")
+    assert "## Against proportional navigation" in section
+    assert "| attacker_v8 (best) | 1 | 5 | +0.200 [" in section and "| 2 / 1 |" in section
+    # The same run flown on other dynamics too (a dynamics swap's evaluation, same scenarios):
+    # no pairing across two games, and no error either.
+    _headroom_evaluation(tmp_path, "s0", "best-airsim", "checkpoint", [1, 1, 0, 0, 1],
+                         dynamics="airsim")  # fmt: skip
+    assert _paired_section(run, summaries(), "test") == ""

@@ -161,6 +161,7 @@ def compare(run_dir: str | Path, split: str = "test") -> str:
     summaries = load_summaries(run_dir, split)
     rows = table_rows(summaries)
     table = markdown_table(rows)
+    paired = _paired_section(run_dir, summaries, split)
     out = run_dir / "eval"
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=COLUMNS, lineterminator="\n")
@@ -184,7 +185,7 @@ def compare(run_dir: str | Path, split: str = "test") -> str:
             "speed per axis, with the dynamics' acceleration limits, can reach the defender at "
             "all, and each policy's capture rate there.\n\n" + ceiling + "\n"
         )
-    figure += _paired_section(run_dir, summaries, split)
+    figure += paired
     atomic_write_text(out / f"compare-{split}.md", header + table + figure)
     log.info("comparison of %d policies in %s", len(rows), out / f"compare-{split}.md")
     return table
@@ -198,7 +199,11 @@ def _paired_section(run_dir: Path, summaries: list[dict[str, Any]], split: str) 
     law = "proportional_navigation"
     if len(summaries) < 2 or not any(s.get("policy") == law for s in summaries):
         return ""
-    rows = paired_rows([run_dir], law, split)
+    try:
+        rows = paired_rows([run_dir], law, split)
+    except ConfigError as err:  # e.g. the run also holds evaluations on other dynamics
+        log.info("compare: no scenario-by-scenario section (%s)", err)
+        return ""
     return (
         "\n## Against proportional navigation, scenario by scenario\n\n"
         "Per scenario each policy's outcome against the law's on the same scenario: the gain "

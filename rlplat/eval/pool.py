@@ -90,6 +90,17 @@ def _one_set(summaries: list[dict[str, Any]], option: str) -> None:
             )
 
 
+def _attackers_only(summaries: list[dict[str, Any]], option: str, why: str) -> None:
+    """Refuse the evaluation of a defender (a defender learner's, or its baselines)."""
+    for s in summaries:
+        scripted = POLICIES.get(s.get("policy"))
+        role = scripted.role if scripted else s.get("learner", "attacker")
+        if role != "attacker":
+            raise ConfigError(
+                f"pool {option}: {s.get('run_dir')} evaluates {s.get('name')}, a {role}; {why}"
+            )
+
+
 def _flag(value: str | None) -> bool:
     """A boolean cell of ``episodes.csv``."""
     return value in ("1", "True", "true")
@@ -109,14 +120,7 @@ def headroom_rows(run_dirs: list[Path], split: str = "test") -> list[dict[str, A
     on the same scenario set (its digest), team size, dynamics and bins.
     """
     episodes, _, summaries = _read(run_dirs, split)
-    for s in summaries:
-        scripted = POLICIES.get(s.get("policy"))
-        role = scripted.role if scripted else s.get("learner", "attacker")
-        if role != "attacker":
-            raise ConfigError(
-                f"pool --headroom: {s.get('run_dir')} evaluates {s.get('name')}, a {role}; "
-                "the headroom is an attacker's"
-            )
+    _attackers_only(summaries, "--headroom", "the headroom is an attacker's")
     _one_set(summaries, "--headroom")
     edges = {tuple(s.get("speed_ratio_bins", ())) for s in summaries}
     if len(edges) > 1:
@@ -173,14 +177,15 @@ def paired_rows(run_dirs: list[Path], against: str, split: str = "test") -> list
     mean over the scenarios both captured at least once of the difference of their mean times
     to capture; None if there are none) with ``both_captured``.
 
-    The evaluations must fly one scenario set, team size and dynamics, every policy all of its
-    scenarios."""
+    The evaluations must fly attackers (not a defender learner's) on one scenario set, team
+    size and dynamics, every policy all of the reference's scenarios."""
     episodes, runs, summaries = _read(run_dirs, split)
     if against not in episodes:
         raise ConfigError(
             f"pool --against: no evaluation of '{against}' under the runs; "
             f"valid: {', '.join(episodes)}"
         )
+    _attackers_only(summaries, "--against", "the gain is an attacker's capture rate")
     _one_set(summaries, "--against")
     per = {label: _per_scenario(rows) for label, rows in episodes.items()}
     reference = per[against]
@@ -240,11 +245,12 @@ def paired_markdown(rows: list[dict[str, Any]]) -> str:
     ]
     for r in rows:
         low, high = r["ci95"]
+        interval = f" [{low:+.3f}, {high:+.3f}]" if np.isfinite(low) else ""  # one scenario: none
         delta = r["time_delta_s"]
         time = f"{delta:+.1f} ({r['both_captured']} scenarios)" if delta is not None else "–"
         lines.append(
-            f"| {r['policy']} | {r['runs']} | {r['scenarios']} | {r['gain']:+.3f} "
-            f"[{low:+.3f}, {high:+.3f}] | {r['gained']} / {r['lost']} | {time} |"
+            f"| {r['policy']} | {r['runs']} | {r['scenarios']} | {r['gain']:+.3f}{interval} "
+            f"| {r['gained']} / {r['lost']} | {time} |"
         )
     return "\n".join(lines)
 
