@@ -206,7 +206,7 @@ def test_headroom_pools_only_what_one_attacker_table_can_hold(tmp_path, summary,
 
 
 def test_against_sets_each_policy_against_the_reference_scenario_by_scenario(tmp_path, capsys):
-    from rlplat.eval.pool import main, paired_rows
+    from rlplat.eval.pool import main, paired_markdown, paired_rows
 
     _headroom_evaluation(tmp_path, "s0", "best", "checkpoint", [1, 1, 0, 0, 1],
                          times=[8, 10, 0, 0, 20])  # fmt: skip
@@ -226,6 +226,9 @@ def test_against_sets_each_policy_against_the_reference_scenario_by_scenario(tmp
     assert row["both_captured"] == 1 and row["time_delta_s"] == pytest.approx(-3.0)
     main([str(tmp_path / "s0"), str(tmp_path / "s1"), "--against", "proportional_navigation"])
     assert "| attacker_v8 (best) | 2 | 5 | +0.100 [" in capsys.readouterr().out
+    one = {**row, "scenarios": 1, "gain": 1.0, "ci95": (float("nan"),) * 2, "gained": 1,
+           "lost": 0, "both_captured": 0, "time_delta_s": None}  # fmt: skip
+    assert paired_markdown([one]).endswith("| attacker_v8 (best) | 2 | 1 | +1.000 | 1 / 0 | – |")
 
 
 def test_against_refuses_an_unknown_reference_and_different_scenarios(tmp_path, capsys):
