@@ -15,11 +15,12 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from rlplat.agents.export import ARTIFACTS
 from rlplat.agents.policies import POLICIES
 from rlplat.cli import exit_on_error
 from rlplat.errors import ConfigError
 from rlplat.eval.plots import plot_comparison
+from rlplat.eval.pool import paired_markdown, paired_rows
+from rlplat.eval.summaries import is_learned, num, policy_label
 from rlplat.io import atomic_write_text
 from rlplat.scenarios import SPLITS
 
@@ -43,13 +44,8 @@ COLUMNS = (
 )
 
 
-def _learned(summary: dict[str, Any]) -> bool:
-    """A run's own network (its checkpoint, or an export of it), not a scripted baseline."""
-    return summary["policy"] == "checkpoint" or summary["policy"] in ARTIFACTS
-
-
 def _order(summary: dict[str, Any]) -> tuple[int, int, str]:
-    if _learned(summary):
+    if is_learned(summary):
         return (0, 0 if summary["name"] == "best" else 1, summary["name"])
     return (1, list(POLICIES).index(summary["policy"]), summary["name"])
 
@@ -82,11 +78,10 @@ def table_rows(summaries: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """One row of :data:`COLUMNS` per evaluated policy."""
     rows = []
     for s in summaries:
-        learned = _learned(s)
         rows.append(
             {
-                "policy": f"{s['drone']} ({s['name']})" if learned else s["policy"],
-                "kind": "learned" if learned else "scripted",
+                "policy": policy_label(s),
+                "kind": "learned" if is_learned(s) else "scripted",
                 "scenarios": s["scenarios"],
                 "captured": s["captured"],
                 "capture_rate": s["capture_rate"],
@@ -96,11 +91,6 @@ def table_rows(summaries: list[dict[str, Any]]) -> list[dict[str, Any]]:
             }
         )
     return rows
-
-
-def num(v: float | None, digits: int = 3) -> str:
-    """A table cell: ``v`` with ``digits`` decimals, or a dash where there is no value."""
-    return "–" if v is None else f"{v:.{digits}f}"
 
 
 def markdown_table(rows: list[dict[str, Any]]) -> str:
@@ -146,7 +136,7 @@ def ceiling_table(summaries: list[dict[str, Any]]) -> str | None:
         + " |",
     ]
     for s in summaries:
-        name = f"{s['drone']} ({s['name']})" if _learned(s) else s["policy"]
+        name = policy_label(s)
         lines.append(
             f"| {name} | {cell(s, 'capture_rate')} | "
             + " | ".join(cell(s["by_speed_ratio"][b], "capture_rate") for b in bins)
@@ -194,8 +184,6 @@ def compare(run_dir: str | Path, split: str = "test") -> str:
 def _paired_section(run_dir: Path, summaries: list[dict[str, Any]], split: str) -> str:
     """Every other policy against proportional navigation scenario by scenario
     (:func:`rlplat.eval.pool.paired_rows`), where the run holds its evaluation; else ""."""
-    from rlplat.eval.pool import paired_markdown, paired_rows  # pool builds on this module
-
     law = "proportional_navigation"
     if len(summaries) < 2 or not any(s.get("policy") == law for s in summaries):
         return ""

@@ -35,13 +35,9 @@ import numpy as np
 from rlplat.agents.policies import POLICIES
 from rlplat.cli import exit_on_error
 from rlplat.errors import ConfigError
-from rlplat.eval.compare import _learned, num
 from rlplat.eval.metrics import speed_ratio_bin, speed_ratio_labels, wilson_interval
+from rlplat.eval.summaries import is_learned, num, policy_label
 from rlplat.scenarios import SPLITS
-
-
-def _label(summary: dict[str, Any]) -> str:
-    return f"{summary['drone']} ({summary['name']})" if _learned(summary) else summary["policy"]
 
 
 def pooled_rows(run_dirs: list[Path], split: str = "test") -> list[dict[str, Any]]:
@@ -68,8 +64,8 @@ def _read(
         for path in paths:
             summary = json.loads(path.read_text())
             summaries.append(summary)
-            label = _label(summary)
-            learned[label] = _learned(summary)
+            label = policy_label(summary)
+            learned[label] = is_learned(summary)
             runs[label] += 1
             with open(path.parent / "episodes.csv", newline="") as f:
                 episodes[label].extend(csv.DictReader(f))
