@@ -39,16 +39,21 @@ from rlplat.eval.metrics import speed_ratio_bin, speed_ratio_labels, wilson_inte
 from rlplat.eval.summaries import is_learned, num, policy_label
 from rlplat.scenarios import SPLITS
 
+#: What :func:`_read` returns: episodes and run count per policy, and every summary read.
+Evaluations = tuple[dict[str, list[dict[str, str]]], dict[str, int], list[dict[str, Any]]]
+
 
 def pooled_rows(run_dirs: list[Path], split: str = "test") -> list[dict[str, Any]]:
     """Per policy (learned ones first, in the order met), the pooled outcome of its episodes."""
-    episodes, runs, _ = _read(run_dirs, split)
+    return _pooled(_read(run_dirs, split))
+
+
+def _pooled(read: Evaluations) -> list[dict[str, Any]]:
+    episodes, runs, _ = read
     return [_pool(label, runs[label], rows) for label, rows in episodes.items()]
 
 
-def _read(
-    run_dirs: list[Path], split: str
-) -> tuple[dict[str, list[dict[str, str]]], dict[str, int], list[dict[str, Any]]]:
+def _read(run_dirs: list[Path], split: str) -> Evaluations:
     """Every evaluation of ``split`` under the runs: episodes and run count per policy (learned
     ones first, in the order met), and the evaluations' summaries."""
     if split not in SPLITS:
@@ -115,7 +120,11 @@ def headroom_rows(run_dirs: list[Path], split: str = "test") -> list[dict[str, A
     Every evaluation must fly attackers (a learned or scripted one, not a defender learner's),
     on the same scenario set (its digest), team size, dynamics and bins.
     """
-    episodes, _, summaries = _read(run_dirs, split)
+    return _headroom(_read(run_dirs, split))
+
+
+def _headroom(read: Evaluations) -> list[dict[str, Any]]:
+    episodes, _, summaries = read
     _attackers_only(summaries, "--headroom", "the headroom is an attacker's")
     _one_set(summaries, "--headroom")
     edges = {tuple(s.get("speed_ratio_bins", ())) for s in summaries}
@@ -175,7 +184,11 @@ def paired_rows(run_dirs: list[Path], against: str, split: str = "test") -> list
 
     The evaluations must fly attackers (not a defender learner's) on one scenario set, team
     size and dynamics, every policy all of the reference's scenarios."""
-    episodes, runs, summaries = _read(run_dirs, split)
+    return _paired(_read(run_dirs, split), against)
+
+
+def _paired(read: Evaluations, against: str) -> list[dict[str, Any]]:
+    episodes, runs, summaries = read
     if against not in episodes:
         raise ConfigError(
             f"pool --against: no evaluation of '{against}' under the runs; "
@@ -196,7 +209,8 @@ def paired_rows(run_dirs: list[Path], against: str, split: str = "test") -> list
                 f"{len(reference)}, not the same ones; evaluate both on one split"
             )
         d = np.array([outcome[s][0] - reference[s][0] for s in sids])
-        half = 1.96 * d.std(ddof=1) / np.sqrt(d.size) if d.size > 1 else float("nan")
+        sd = float(d.std(ddof=1)) if d.size > 1 else float("nan")
+        half = 1.96 * sd / np.sqrt(d.size)
         both = [s for s in sids if outcome[s][1] is not None and reference[s][1] is not None]
         out.append({
             "policy": label,
@@ -205,7 +219,7 @@ def paired_rows(run_dirs: list[Path], against: str, split: str = "test") -> list
             "scenarios": d.size,
             "gain": float(d.mean()),
             "ci95": (float(d.mean() - half), float(d.mean() + half)),
-            "sd": float(d.std(ddof=1)) if d.size > 1 else float("nan"),
+            "sd": sd,
             "gained": int((d > 0).sum()),
             "lost": int((d < 0).sum()),
             "both_captured": len(both),
@@ -222,8 +236,9 @@ def _per_scenario(rows: list[dict[str, str]]) -> dict[str, tuple[float, float | 
     flown: dict[str, list[bool]] = defaultdict(list)
     times: dict[str, list[float]] = defaultdict(list)
     for r in rows:
-        flown[r["scenario_id"]].append(_captured(r))
-        if _captured(r):
+        caught = _captured(r)
+        flown[r["scenario_id"]].append(caught)
+        if caught:
             times[r["scenario_id"]].append(float(r["time_to_capture_s"]))
     return {
         sid: (float(np.mean(f)), float(np.mean(times[sid])) if times[sid] else None)
@@ -332,11 +347,12 @@ def main(argv: list[str] | None = None) -> None:
         "scenario by scenario: the gain with its interval, scenarios gained and lost",
     )
     args = parser.parse_args(argv)
-    tables = [markdown(pooled_rows(args.run_dirs, args.split))]  # all checked before any output
+    read = _read(args.run_dirs, args.split)  # once, for every table
+    tables = [markdown(_pooled(read))]  # all checked before any output
     if args.headroom:
-        tables.append(headroom_markdown(headroom_rows(args.run_dirs, args.split)))
+        tables.append(headroom_markdown(_headroom(read)))
     if args.against:
-        tables.append(paired_markdown(paired_rows(args.run_dirs, args.against, args.split)))
+        tables.append(paired_markdown(_paired(read, args.against)))
     print("\n\n".join(tables))
 
 
