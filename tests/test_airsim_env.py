@@ -11,6 +11,7 @@ import socket
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -27,10 +28,10 @@ from rlplat.envs.dynamics import VelocityDynamics
 from rlplat.envs.parallel import WorkerFault
 from rlplat.errors import ConfigError
 from rlplat.experiment.evaluation import evaluate_run
-from tests.conftest import ROOT
 
 pytest.importorskip("cosysairsim")
 
+REPO = Path(__file__).resolve().parent.parent
 PERIOD = 0.1  # s, env.control_period
 # Spawn points away from the origin (ENU world): every position crosses a vehicle's own frame.
 SPAWN_ENU = {"Attacker": (30.0, -20.0, 0.0), "Defender": (-10.0, 5.0, 0.0)}
@@ -482,7 +483,7 @@ def test_training_on_airsim_stops_on_a_lost_simulator_and_resumes_once_it_is_bac
     srv = TestServer(SETTINGS, port=port).start()
     proc = subprocess.Popen(
         [sys.executable, "train.py", *overrides, "train.total_frames=100000"],
-        cwd=ROOT,
+        cwd=REPO,
         stderr=subprocess.PIPE,
         stdout=subprocess.PIPE,
         text=True,

@@ -95,3 +95,19 @@ def test_the_contract_catches_an_upward_import(tmp_path):
     fake = tmp_path / "fake.py"
     fake.write_text("from rlplat.experiment.factory import build_env\n")
     assert rlplat_imports(fake) == {"rlplat.experiment.factory"}
+
+
+def test_no_test_module_imports_another():
+    # Shared fixtures and helpers live in tests/conftest.py, which pytest provides; a test module
+    # importing another (conftest included) would run that module's setup twice.
+    tests_dir = Path(__file__).resolve().parent
+    names = {p.stem for p in tests_dir.glob("*.py")} | {"tests"}
+    for path in tests_dir.glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module:
+                found = [node.module]
+            elif isinstance(node, ast.Import):
+                found = [a.name for a in node.names]
+            else:
+                continue
+            assert not {m.split(".")[0] for m in found} & names, (path.name, found)

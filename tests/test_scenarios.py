@@ -170,6 +170,7 @@ def test_load_returns_tensors_matching_files(make_spec, tmp_path):
     ("overrides", "message"),
     [
         (("scenario.n_val=-5",), r"scenario.n_val: count must be >= 0, got -5"),
+        (("scenario.seed=-5",), r"scenario.seed: must be an integer >= 0, got -5"),
         (
             ("scenario.params.defender_z.low=30", "scenario.params.defender_z.high=6"),
             r"scenario.params.defender_z: empty or inverted range \[low=30.0, high=6.0\]",

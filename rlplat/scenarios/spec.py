@@ -241,7 +241,7 @@ class ScenarioSpec:
             spread = _param(spread, f"{where}.defender_spread")
 
         spec = cls(
-            seed=_int(raw["seed"], f"{where}.seed"),
+            seed=_int(raw["seed"], f"{where}.seed", low=0),
             vision_semi_axes=axes,
             min_distance=min_distance,
             min_altitude=float(raw["min_altitude"]),
@@ -269,9 +269,11 @@ def _no_unknown(raw: Mapping[str, Any], known: set[str], where: str) -> None:
         raise ConfigError(f"{where}.{unknown[0]}: unknown field; valid: {', '.join(sorted(known))}")
 
 
-def _int(v: Any, where: str) -> int:
+def _int(v: Any, where: str, low: int | None = None) -> int:
     if isinstance(v, bool) or not isinstance(v, int):
         raise ConfigError(f"{where}: expected an integer, got {v!r}")
+    if low is not None and v < low:
+        raise ConfigError(f"{where}: must be an integer >= {low}, got {v!r}")
     return v
 
 
