@@ -1,6 +1,7 @@
 """Frame conversions and settings.json for the AirSim backend (rlplat.envs.airsim)."""
 
 import json
+import logging
 
 import numpy as np
 import pytest
@@ -121,14 +122,18 @@ def test_spawn_offsets_fallback_fills_missing_vehicles_and_coordinates():
     assert got == {"Defender": (1.0, 4.0, 3.0), "Defender2": (7.0, 8.0, 9.0)}
 
 
-def test_spawn_offsets_unknown_vehicle_lists_the_vehicles():
-    with pytest.raises(ConfigError) as err:
-        spawn_offsets(SETTINGS, ["Attacker", "Attacker2"])
-    message = str(err.value)
-    assert "'Attacker2'" in message and "Attacker, Defender" in message
-    assert "\n" not in message
-    with pytest.raises(ConfigError, match="its vehicles: none"):
-        spawn_offsets({}, ["Attacker"])
+def test_spawn_offsets_of_a_vehicle_the_settings_do_not_place_is_the_origin(caplog):
+    # AirSim spawns a vehicle its settings give no X/Y/Z at its PlayerStart, the origin; the
+    # warning lists the vehicles the settings do place.
+    with caplog.at_level(logging.WARNING, logger="rlplat.envs.airsim.frames"):
+        got = spawn_offsets(SETTINGS, ["Attacker", "Attacker2"])
+    assert got == {"Attacker": (10.0, -2.5, -1.0), "Attacker2": (0.0, 0.0, 0.0)}
+    [record] = caplog.records
+    assert "'Attacker2'" in record.getMessage() and "Attacker, Defender" in record.getMessage()
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="rlplat.envs.airsim.frames"):
+        assert spawn_offsets({}, ["Attacker"]) == {"Attacker": (0.0, 0.0, 0.0)}
+    assert "its vehicles: none" in caplog.text
 
 
 def test_spawn_offsets_refuse_a_non_numeric_coordinate():

@@ -22,6 +22,7 @@ lock-step loop does every step.
 
 from __future__ import annotations
 
+import logging
 import sys
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
@@ -29,6 +30,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from rlplat.errors import ConfigError
+
+log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:  # torch is not imported here: a tensor exists only if torch was imported
     from torch import Tensor
@@ -158,7 +161,9 @@ def spawn_offsets(
 
     A vehicle's coordinate is ``Vehicles.<name>.X`` (``Y``, ``Z``) of the settings; one the
     settings leave out is taken from ``fallback[name]`` when that has the vehicle, else 0. A name
-    that neither the settings nor the fallback has is an error listing the settings' vehicles.
+    that neither the settings nor the fallback has spawns where AirSim puts a vehicle its
+    settings do not place, the origin (its PlayerStart): (0, 0, 0), with a logged warning
+    listing the settings' vehicles (check the vehicles themselves against ``listVehicles``).
 
     Args:
         settings: the parsed settings.json (e.g. ``json.loads`` of ``getSettingsString()``).
@@ -169,7 +174,7 @@ def spawn_offsets(
         name -> (x, y, z) Python floats, NED metres, in the order of ``names``.
 
     Raises:
-        ConfigError: a name is in neither mapping, or a coordinate is not a number.
+        ConfigError: a coordinate is not a number, or a fallback is not (x, y, z).
     """
     vehicles = settings.get("Vehicles") or {}
     if not isinstance(vehicles, Mapping):
@@ -179,11 +184,11 @@ def spawn_offsets(
     for name in names:
         entry, backup = vehicles.get(name), fallback.get(name)
         if entry is None and backup is None:
-            have = ", ".join(vehicles) or "none"
-            raise ConfigError(
-                f"vehicle {name!r} is not in the simulator's settings (its vehicles: {have}) "
-                "and has no fallback spawn position"
-            )
+            log.warning(
+                "vehicle %r is in neither the simulator's settings (its vehicles: %s) nor "
+                "dynamics.spawn: its spawn point is taken as the origin",
+                name, ", ".join(vehicles) or "none",
+            )  # fmt: skip
         if backup is not None and len(backup) != 3:
             raise ConfigError(f"fallback spawn of {name!r} must be (x, y, z), got {backup!r}")
         coords = []
