@@ -13,6 +13,7 @@ import pytest
 import torch
 from torch import nn
 
+import rlplat.experiment.export as export_module
 from rlplat.agents import sac
 from rlplat.agents.checkpoint import actor_from_state, load_checkpoint, save_checkpoint
 from rlplat.agents.export import DeterministicActor, c_sources
@@ -218,6 +219,33 @@ def test_a_second_export_through_the_cli_is_byte_identical(run, exported, tmp_pa
     for name in ARTIFACTS:
         assert (out / name).read_bytes() == (run / "export" / "best" / name).read_bytes(), name
     assert sorted(p.name for p in out.iterdir()) == sorted([*ARTIFACTS, "card.json"])
+
+
+def test_a_second_export_keeps_the_card_of_the_same_artifacts_on_this_machine(
+    run, exported, tmp_path, monkeypatch
+):
+    # Timing is the card's only measurement that varies from one export to the next: a second
+    # export of the same checkpoint into the same place keeps the timing of the card it
+    # replaces, so that every file is byte-identical; retime=True measures again.
+    out = tmp_path / "best"
+    shutil.copytree(run / "export" / "best", out)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    timed = []
+    measure = export_module.measure_timing
+    monkeypatch.setattr(
+        export_module, "measure_timing", lambda *a, **k: timed.append(1) or measure(*a, **k)
+    )
+    export_run(run, out_dir=out)
+    assert not timed
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    card = export_run(run, out_dir=out, retime=True)
+    assert len(timed) == 1
+    assert card["timing"]["c"]["calls"] == exported["timing"]["c"]["calls"]
+    for name in ARTIFACTS:
+        assert (out / name).read_bytes() == before[name], name
+    # Another number of timed calls is another measurement: timed again.
+    export_run(run, out_dir=out, timing_calls=1000)
+    assert len(timed) == 2
 
 
 # Bad input --------------------------------------------------------------------------------

@@ -297,6 +297,7 @@ EXPORT_RULES: dict[str, Rule] = {
     "tolerance": POSITIVE,
     "timing_calls": Num(integer=True, ge=100),
     "compiler": Text(),
+    "retime": flag,
     "threads": THREADS,
 }
 
