@@ -399,3 +399,18 @@ def test_a_team_run_exports_and_flies_one_call_per_drone(tmp_path, write_set, sh
     assert all(d <= 1e-5 for d in card["equivalence"]["max_abs_action_difference"].values())
     ev = evaluate_run(run, policy="c", plots=False)
     assert ev.summary["attackers"] == 2 and ev.summary["outcomes_differing_from_torch"] == 0
+
+
+def test_a_defender_run_exports_and_flies_the_evaluation(tmp_path, write_set, short_run):
+    # A trained defender bundle: its observation is the route's, its artifacts fly the defender
+    # through the evaluator against the scripted attacker with the torch outcomes.
+    defender_set = write_set(tmp_path / "scenarios", "scenario.n_test=32")
+    run = short_run(defender_set, tmp_path / "run", "drone=defender_v1")
+    card = export_run(run, **QUICK)
+    assert card["source"]["learner"] == "defender"
+    assert card["interface"]["observation"]["name"] == "route_state"
+    assert all(d <= 1e-5 for d in card["equivalence"]["max_abs_action_difference"].values())
+    for policy in ("c", "onnx"):
+        ev = evaluate_run(run, policy=policy, plots=False)
+        assert ev.summary["learner"] == "defender", policy
+        assert ev.summary["outcomes_differing_from_torch"] == 0, policy
