@@ -14,10 +14,10 @@ A second export of the same checkpoint is byte-identical: the artifacts are gene
 deterministically, and the card keeps the timing of the card it replaces when that card timed
 the same artifacts with the same number of calls on the same machine (CPU, compiler, system,
 library versions; ``retime=True`` measures again, ``load_average`` records the load of the
-timing). Everything is checked before any work,
-everything is verified before anything is written, and every file is written atomically. A
-controller file (e.g. the shipped defender network) exports the same way (``controller=``),
-rolled out on the configured scenario set of its drone bundle.
+timing). Everything is checked before any work, everything is verified before anything is
+written, and every file is written atomically. A controller file (e.g. the shipped defender
+network) exports the same way (``controller=``), rolled out on the configured scenario set of
+its drone bundle.
 """
 
 from __future__ import annotations
