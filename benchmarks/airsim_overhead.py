@@ -17,13 +17,16 @@ library); ``server CPU``, the CPU time of the simulator process (``/proc/<pid>/s
 its RPC handling included; ``wall - server``, what is left once the simulator's work is taken
 out (the client's work and the round trips' latency, scheduling included).
 
+Every row times its steps after ``--warmup`` untimed ones of the same kind (the first hundreds of
+steps of a fresh env or connection cost more: allocations, caches, the first episode's reset).
 Resets are not timed (episodes that end are reset between timed steps). Part 2: env steps/s
 (summed over the envs) with 1, 2 and 4 simulators, ``env.rollout`` with random actions: one
 simulator is the single env above; several are a TorchRL ParallelEnv, one worker process per
 simulator (``main CPU``: this process's CPU time per batch step). Run it niced when the
 machine has other work:
 
-    nice -n 10 .venv/bin/python benchmarks/airsim_overhead.py [--steps 1000] [--servers 1 2 4]
+    nice -n 10 .venv/bin/python benchmarks/airsim_overhead.py \
+        [--steps 1000] [--warmup 200] [--servers 1 2 4]
 """
 
 from __future__ import annotations
@@ -114,13 +117,13 @@ class Meter:
         return f"{team:<5} {what:<26} {ms['wall']:>8.3f} {ms['cpu']:>14.3f} {server} {rest}"
 
 
-def time_env(env, steps: int, server_pid: int | None = None) -> Meter:
+def time_env(env, steps: int, warmup: int, server_pid: int | None = None) -> Meter:
     """``env.step`` with random actions drawn before timing; episodes that end are reset
     outside the timed spans."""
     actions = [env.full_action_spec.rand() for _ in range(64)]
     td = env.reset()
-    for i in range(5):  # warm-up
-        td = env.step_and_maybe_reset(td.update(actions[i]))[1]
+    for i in range(warmup):
+        td = env.step_and_maybe_reset(td.update(actions[i % len(actions)]))[1]
     meter = Meter(server_pid)
     for i in range(steps):
         td.update(actions[i % len(actions)])
@@ -133,10 +136,12 @@ def time_env(env, steps: int, server_pid: int | None = None) -> Meter:
     return meter
 
 
-def time_advance(env, steps: int, server_pid: int) -> Meter:
+def time_advance(env, steps: int, warmup: int, server_pid: int) -> Meter:
     """``dynamics.advance`` alone (a hover command): the AirSim step without the env."""
     env.reset()
     hover = torch.zeros_like(env.dynamics.position)
+    for _ in range(warmup):
+        env.dynamics.advance(hover, env.control_period)
     meter = Meter(server_pid)
     for _ in range(steps):
         meter.start()
@@ -145,7 +150,9 @@ def time_advance(env, steps: int, server_pid: int) -> Meter:
     return meter
 
 
-def time_wire(address: str, names: list[str], period: float, steps: int, pid: int) -> Meter:
+def time_wire(
+    address: str, names: list[str], period: float, steps: int, warmup: int, pid: int
+) -> Meter:
     """The calls of one lock-step step over a minimal blocking msgpack-rpc client: every
     move and the continue in one write, every state and collision read in another; the
     answers unpacked, the positions and velocities taken out as floats. What the protocol
@@ -175,8 +182,8 @@ def time_wire(address: str, names: list[str], period: float, steps: int, pid: in
         wait(send([("enableApiControl", [True, name]), ("armDisarm", [True, name])]))
     yaw = {"is_rate": True, "yaw_or_rate": 0.0}
     meter = Meter(pid)
-    for k in range(steps + 5):
-        if k == 5:
+    for k in range(steps + warmup):
+        if k == warmup:
             meter = Meter(pid)  # after a warm-up
         meter.start()
         moves = [("moveByVelocity", [0.0, 0.0, 0.0, period + 0.1, 0, yaw, n]) for n in names]
@@ -195,7 +202,7 @@ def time_wire(address: str, names: list[str], period: float, steps: int, pid: in
     return meter
 
 
-def overhead(steps: int) -> None:
+def overhead(steps: int, warmup: int) -> None:
     print("Part 1: one simulator, one env; ms per step")
     print(
         f"{'team':<5} {'what':<26} {'wall ms':>8} {'client CPU ms':>14} {'server CPU ms':>14} "
@@ -207,15 +214,16 @@ def overhead(steps: int) -> None:
             ((proc, address),) = servers
             env = make_env(*overrides, "dynamics=airsim", f"dynamics.endpoints=[{address}]",
                            num_envs=1, split="test")  # fmt: skip
-            print(time_env(env, steps, proc.pid).row(team, "env.step, airsim"), flush=True)
-            print(time_advance(env, steps, proc.pid).row(team, "dynamics.advance, airsim"))
+            print(time_env(env, steps, warmup, proc.pid).row(team, "env.step, airsim"), flush=True)
+            advance = time_advance(env, steps, warmup, proc.pid)
+            print(advance.row(team, "dynamics.advance, airsim"))
             names, period = list(env.dynamics.names), env.control_period
             env.close()
-            wire = time_wire(address, names, period, steps, proc.pid)
+            wire = time_wire(address, names, period, steps, warmup, proc.pid)
             print(wire.row(team, "the same calls, bare wire"))
         finally:
             stop_servers(servers)
-        embedded = time_env(make_env(*overrides, num_envs=1, split="test"), steps)
+        embedded = time_env(make_env(*overrides, num_envs=1, split="test"), steps, warmup)
         print(embedded.row(team, "env.step, velocity"), flush=True)
 
 
@@ -243,11 +251,12 @@ def parallel(counts: list[int], steps: int) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=1000, help="timed env steps per row")
+    parser.add_argument("--warmup", type=int, default=200, help="untimed steps before each row")
     parser.add_argument("--servers", type=int, nargs="+", default=[1, 2, 4])
     args = parser.parse_args()
     torch.set_num_threads(1)
     print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, {os.cpu_count()} CPUs")
-    overhead(args.steps)
+    overhead(args.steps, args.warmup)
     parallel(args.servers, max(50, args.steps // 4))
 
 
