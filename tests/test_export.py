@@ -136,6 +136,7 @@ def test_export_writes_verified_artifacts_and_their_card(run, exported):
         "void rlplat_policy(const float obs[RLPLAT_OBS_DIM], float action[RLPLAT_ACT_DIM]);"
         in header
     )
+    assert "action: in [-1, 1]; times the drone's maximum speed per axis, the velocity" in header
 
 
 def test_the_written_files_compute_the_torch_actions(run, exported, scenarios, tmp_path):
@@ -330,6 +331,8 @@ def test_a_guided_controller_exports_with_its_guidance(
     assert unit in action["unit"]
     assert card["interface"]["observation"]["dim"] == 10
     assert header in (out / "policy.h").read_text()
+    # Next to the declaration too: the action is not the velocity command.
+    assert "action: in [-1, 1]; not the velocity command itself" in (out / "policy.h").read_text()
     ev = evaluate_run(run, policy="c", ckpt="last", plots=False)
     assert ev.summary["outcomes_differing_from_torch"] == 0
 

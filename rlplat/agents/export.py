@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import textwrap
 import warnings
 from collections.abc import Sequence
 from typing import Any
@@ -244,10 +245,17 @@ def _c_dense(x: str, y: str, w: str, n: int, width: int, unroll: int = 4) -> lis
     return lines
 
 
-def c_sources(actor: DeterministicActor, describe: Sequence[str] = ()) -> tuple[str, str]:
+#: What ``rlplat_policy``'s action is, in the header, for an action that is the velocity command.
+VELOCITY_ACTION = "in [-1, 1]; times the drone's maximum speed per axis, the velocity command."
+
+
+def c_sources(
+    actor: DeterministicActor, describe: Sequence[str] = (), action: str = VELOCITY_ACTION
+) -> tuple[str, str]:
     """``policy.h`` and ``policy.c`` of ``actor``: C99, weights as ``static const float``, no
     heap, only ``tanhf``/``expm1f`` from libm. ``describe``: comment lines for the header (the
-    observation layout, where the network came from).
+    observation layout, where the network came from); ``action``: what the action is, next to
+    the function's declaration.
 
     Each Linear layer computes ``y[j] = b[j] + sum_i W[i][j] x[i]`` with the weights stored
     input-major, so that the inner loop runs over contiguous outputs (which compilers
@@ -272,9 +280,9 @@ def c_sources(actor: DeterministicActor, describe: Sequence[str] = ()) -> tuple[
         f"#define RLPLAT_ACT_DIM  {act_dim}\n\n"
         '#ifdef __cplusplus\nextern "C" {\n#endif\n\n'
         "/* obs: the observation exactly as the env emits it (SI units, the order above).\n"
-        " * action: in [-1, 1]; times the drone's maximum speed per axis, the velocity\n"
-        " * command. A NaN observation gives NaN actions (an infinite one may), as the\n"
-        " * torch actor does: check them before flying the command. */\n"
+        + "".join(f" * {line}\n" for line in textwrap.wrap(f"action: {action}", 76))
+        + " * A NaN observation gives NaN actions (an infinite one may), as the torch actor\n"
+        " * does: check them before flying the command. */\n"
         f"{C_API}\n\n"
         "#ifdef __cplusplus\n}\n#endif\n\n#endif /* RLPLAT_POLICY_H */\n"
     )

@@ -42,6 +42,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from rlplat.agents.checkpoint import actor_from_state, load_checkpoint
 from rlplat.agents.export import (
     C_API,
+    VELOCITY_ACTION,
     DeterministicActor,
     c_sources,
     observation_key,
@@ -218,6 +219,16 @@ def describe_lines(src: Source, env, features: list[dict[str, Any]]) -> list[str
     return lines
 
 
+def action_line(env) -> str:
+    """What ``rlplat_policy``'s action is, next to its declaration in ``policy.h``."""
+    if getattr(env.action_fn, "guided", False):
+        return (
+            "in [-1, 1]; not the velocity command itself: the guidance law above makes the "
+            "velocity command of it."
+        )
+    return VELOCITY_ACTION
+
+
 def network_card(actor: DeterministicActor, state: dict[str, Any]) -> dict[str, Any]:
     net = state["net"]
     params = sum(p.numel() for p in actor.mlp.parameters())
@@ -368,7 +379,7 @@ def export_run(
     # The artifacts, in memory.
     features = env.obs_fn.features()
     model = onnx_bytes(actor)
-    header, source = c_sources(actor, describe_lines(src, env, features))
+    header, source = c_sources(actor, describe_lines(src, env, features), action_line(env))
 
     # Equivalence: torch, ONNX Runtime and C on every observation.
     onnx_policy = OnnxPolicy(model, actor.obs_dim, actor.action_dim)
