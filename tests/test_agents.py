@@ -153,7 +153,8 @@ def test_compiled_update_from_a_replay_buffer_matches_eager(scenarios):
     from rlplat.experiment.factory import build_env
     from rlplat.experiment.training import replay
 
-    cfg = compose_config("train", [f"scenarios_dir={scenarios.path}"])
+    # attacker_v4: a 3-d action
+    cfg = compose_config("train", [f"scenarios_dir={scenarios.path}", "drone=attacker_v4"])
     assert cfg.algo.n_steps > 1  # the default: transitions carry steps_to_next_obs
     env = build_env(cfg, scenarios=scenarios, split="train", num_envs=16)
     td, steps = env.reset(), []

@@ -60,6 +60,19 @@ def test_train_option_composes_and_validates(option):
     validate_train_config(compose_config("train", overrides))
 
 
+def test_attacker_v9_flies_a_corrected_law_and_a_group_choice_replaces_it():
+    # conf/action/corrected_law.yaml is no registry key: guidance_law with a correction of 2.
+    bundle = compose_config("train", ["drone=attacker_v9"])
+    assert bundle.observation.name == "pursuit_route" and bundle.reward.terms.capture == 100.0
+    assert bundle.action.name == "guidance_law" and bundle.action.correction_reach == 2.0
+    # A group choice on the command line replaces the bundle's, its correction included.
+    law = compose_config("train", ["drone=attacker_v9", "action=guidance_law"])
+    assert law.action.correction_reach == 0.0 and law.observation.name == "pursuit_route"
+    guided = compose_config("train", ["drone=attacker_v9", "action=guided_velocity"])
+    assert guided.action.name == "guided_velocity" and "correction_reach" not in guided.action
+    validate_train_config(guided)  # its scripted start is the bundle's random one
+
+
 @pytest.mark.parametrize(
     "overrides",
     [
@@ -299,8 +312,10 @@ def test_check_resume_accepts_a_longer_budget():
 
 
 def test_check_resume_refuses_a_changed_config_in_one_line():
-    saved = resolved()
-    current = resolved("resume=true", "env.capture_radius=2.0", "reward.terms.capture=5.0")
+    saved = resolved("drone=attacker_v4")  # eq. 3: a capture pays 10
+    current = resolved(
+        "drone=attacker_v4", "resume=true", "env.capture_radius=2.0", "reward.terms.capture=5.0"
+    )
     with pytest.raises(ConfigError) as info:
         check_resume(saved, current)
     message = str(info.value)
@@ -377,7 +392,7 @@ SAC_PAPER_KEPT = {
 
 
 def test_sac_paper_is_sac_plus_its_changes():
-    # attacker_v3 sets no algo value of its own (attacker_v4, the default, sets some)
+    # attacker_v3 sets no algo value of its own (attacker_v4 and later bundles set some)
     sac = resolved("algo=sac", "drone=attacker_v3")["algo"]
     paper = resolved("algo=sac_paper", "drone=attacker_v3")["algo"]
     assert paper == {**SAC_PAPER_CHANGES, **SAC_PAPER_KEPT}

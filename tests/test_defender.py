@@ -155,7 +155,12 @@ def test_shipped_defender_is_what_its_card_says():
 
 @pytest.mark.parametrize(
     ("observation", "columns"),
-    [("pursuit_accel", [10, 11, 12]), ("pursuit_clock", [4]), ("pursuit_world", [4, 5, 6])],
+    [
+        ("pursuit_accel", [10, 11, 12]),
+        ("pursuit_clock", [4]),
+        ("pursuit_world", [4, 5, 6]),
+        ("pursuit_route", [7, 8, 9]),
+    ],
 )
 def test_a_network_defender_sees_what_its_observation_reads(mixed, tmp_path, observation, columns):
     # A network on an observation that reads the attacker's acceleration, the time left or the

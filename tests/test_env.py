@@ -45,7 +45,15 @@ def test_registries_match_config_groups():
         == {OmegaConf.load(CONF / "observation" / f"{s}.yaml").name for s in stems("observation")}
         == stems("observation")
     )
-    assert set(ACTIONS) == stems("action")
+    # An action file is a registry entry or derives from one through its defaults list (e.g.
+    # corrected_law: guidance_law with a correction): its composed name is a registry key,
+    # and every registry key has a file of its own name.
+    names = {s: compose_config("train", [f"action={s}"]).action.name for s in stems("action")}
+    assert set(names.values()) == set(ACTIONS) <= stems("action")
+    assert all(names[key] == key for key in ACTIONS)
+    for stem in stems("action") - set(ACTIONS):
+        raw = OmegaConf.load(CONF / "action" / f"{stem}.yaml")
+        assert "name" not in raw and raw.defaults[0] == names[stem], stem
     for s in stems("reward"):
         cfg = OmegaConf.load(CONF / "reward" / f"{s}.yaml")
         Reward(**cfg)  # every term known, every key a constructor argument
@@ -59,6 +67,7 @@ def test_registries_match_config_groups():
         "attacker_v6",
         "attacker_v7",
         "attacker_v8",
+        "attacker_v9",
         "defender_v1",
     }
 
@@ -73,6 +82,7 @@ def test_registries_match_config_groups():
         ("attacker_v5", 10),
         ("attacker_v6", 10),
         ("attacker_v8", 10),
+        ("attacker_v9", 16),
     ],
 )
 def test_drone_bundles_pick_their_observation_and_cli_wins(scenarios, drone, dim):
@@ -227,7 +237,7 @@ def test_capture_terminates_with_reward_and_true_final_observation(scenarios):
 
 
 def test_partial_reset_only_touches_flagged_envs(scenarios):
-    env = make_env(scenarios=scenarios, num_envs=4)
+    env = make_env("drone=attacker_v4", scenarios=scenarios, num_envs=4)  # a 3-d action
     td = env.reset()
     assert td["scenario_index"].squeeze(-1).tolist() == [0, 1, 2, 3]  # sequential walk
     for _ in range(5):
@@ -300,6 +310,7 @@ def test_compiled_step_flies_like_the_eager_one(
 
     def run(compile_step):
         env = make_env(
+            "drone=attacker_v4",  # the tolerances above hold for its guided_velocity action
             f"env.compile_step={compile_step}",
             "env.time_limit=3",
             "env.scenario_order=random",
@@ -349,7 +360,8 @@ def test_no_nan_in_long_random_rollouts(scenarios, dynamics):
 def test_defender_follows_its_route_to_the_end(write_small_set, tmp_path):
     route = "scenario.routes=[[[0,0,10],[0,6,10]]]"
     write_small_set(tmp_path, route, "scenario.params.defender_max_speed.low=4")
-    env = make_env(route, "env.time_limit=30", scenarios=tmp_path, num_envs=8)
+    env = make_env(route, "drone=attacker_v4", "env.time_limit=30", scenarios=tmp_path,
+                   num_envs=8)  # fmt: skip
     hover = TensorDictModule(lambda o: o[..., :3] * 0, in_keys=["observation"], out_keys=["action"])
     td = env.rollout(300, hover, break_when_any_done=False)
     truncated = td["next", "truncated"].squeeze(-1)
@@ -413,7 +425,7 @@ def test_default_scenarios_are_generated_once_into_the_cache(small_sizes, tmp_pa
     ],
 )
 def test_bad_actions_are_refused(scenarios, action, match):
-    env = make_env(scenarios=scenarios, num_envs=2)
+    env = make_env("drone=attacker_v4", scenarios=scenarios, num_envs=2)  # a 3-d action
     td = env.reset()
     with pytest.raises(ValueError, match=match):
         env.step(td.set("action", action))

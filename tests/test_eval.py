@@ -65,7 +65,7 @@ def test_hovering_defender_is_captured_at_the_computed_time(tmp_path):
     v, dt, physics_dt, radius = 2.0, 0.1, 0.05, 1.2
     d0 = [10.1, 60.1]
     sset = hovering_defender_set(tmp_path, [-x for x in d0], v)
-    cfg = compose_config("train", [*IDEAL, "env.time_limit=10"])
+    cfg = compose_config("train", ["drone=attacker_v4", *IDEAL, "env.time_limit=10"])  # eq. 3
     env = build_env(cfg, scenarios=sset, split="test", num_envs=2, scenario_order="sequential")
     results = evaluate(env, make_scripted_policy("pure_pursuit", env), record=True)
 
@@ -149,9 +149,10 @@ def test_baseline_registry_errors(scenarios):
 @pytest.fixture(scope="module")
 def trained_run(scenarios, tmp_path_factory, tiny, run_python):
     run = tmp_path_factory.mktemp("run")
+    # attacker_v4: pursuit_state (R^10) and a guided_velocity action (a correction of scale 1)
     res = run_python(
-        "train.py", *tiny, "env.time_limit=20", f"scenarios_dir={scenarios.path}",
-        f"hydra.run.dir={run}",
+        "train.py", *tiny, "drone=attacker_v4", "env.time_limit=20",
+        f"scenarios_dir={scenarios.path}", f"hydra.run.dir={run}",
     )  # fmt: skip
     assert res.returncode == 0, res.stderr[-2000:]
     return run

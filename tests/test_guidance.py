@@ -15,6 +15,7 @@ from rlplat.scenarios import STRATEGIES
 
 GUIDED = "action=guided_velocity"
 PLAIN = "drone=attacker_v3"  # eq. 1 and 2: the plain velocity action
+V4 = "drone=attacker_v4"  # pursuit_state, a 3-d guided action, proportional navigation's start
 
 
 @pytest.mark.parametrize("accel_lead", [0.0, 0.9])
@@ -151,9 +152,9 @@ def test_a_correction_of_reach_two_flies_every_scripted_policy(scenarios):
     from rlplat.experiment.schema import validate_train_config
 
     # attacker_v4's scripted start (proportional navigation plus noise) flies through it.
-    validate_train_config(compose_config("train", [LAW, "action.correction_reach=2"]))
+    validate_train_config(compose_config("train", [V4, LAW, "action.correction_reach=2"]))
     with pytest.raises(ConfigError, match="algo.init_policy: 'proportional_navigation' cannot"):
-        validate_train_config(compose_config("train", [LAW, "action.correction_reach=1.5"]))
+        validate_train_config(compose_config("train", [V4, LAW, "action.correction_reach=1.5"]))
 
 
 @pytest.mark.parametrize(
@@ -249,9 +250,9 @@ def test_a_law_action_flies_no_scripted_policy(scenarios):
     from rlplat.experiment.config import compose_config
     from rlplat.experiment.schema import validate_train_config
 
-    validate_train_config(compose_config("train", [LAW, "algo.init_policy=random"]))
+    validate_train_config(compose_config("train", [V4, LAW, "algo.init_policy=random"]))
     with pytest.raises(ConfigError, match="algo.init_policy: 'proportional_navigation' cannot"):
-        validate_train_config(compose_config("train", [LAW]))  # attacker_v4's scripted start
+        validate_train_config(compose_config("train", [V4, LAW]))  # attacker_v4's scripted start
 
 
 @pytest.mark.parametrize(
@@ -276,7 +277,7 @@ def test_pursuit_state_adds_the_own_maximum_speed(scenarios):
 
 
 def test_pursuit_clock_adds_the_time_left_until_the_time_limit(scenarios):
-    env = make_env("observation=pursuit_clock", "env.time_limit=2", scenarios=scenarios,
+    env = make_env(V4, "observation=pursuit_clock", "env.time_limit=2", scenarios=scenarios,
                    num_envs=5, split="val")  # fmt: skip
     td = env.reset()
     assert td["observation"].shape == (5, 11)
@@ -289,16 +290,16 @@ def test_pursuit_clock_adds_the_time_left_until_the_time_limit(scenarios):
     expected = torch.linspace(2.0, 0.0, 21).unsqueeze(1).expand(21, 5)
     torch.testing.assert_close(torch.stack(left), expected)
     assert td["done"].all()
-    state = make_env("observation=pursuit_state", scenarios=scenarios, num_envs=5, split="val")
-    first = make_env("observation=pursuit_clock", scenarios=scenarios, num_envs=5, split="val")
+    state = make_env(V4, "observation=pursuit_state", scenarios=scenarios, num_envs=5, split="val")
+    first = make_env(V4, "observation=pursuit_clock", scenarios=scenarios, num_envs=5, split="val")
     torch.testing.assert_close(
         first.reset()["observation"][:, [0, 1, 2, 3, *range(5, 11)]], state.reset()["observation"]
     )
 
 
 def test_pursuit_accel_adds_the_opponents_acceleration_the_env_reports(scenarios):
-    env = make_env("observation=pursuit_accel", scenarios=scenarios, num_envs=5, split="val")
-    state = make_env("observation=pursuit_state", scenarios=scenarios, num_envs=5, split="val")
+    env = make_env(V4, "observation=pursuit_accel", scenarios=scenarios, num_envs=5, split="val")
+    state = make_env(V4, "observation=pursuit_state", scenarios=scenarios, num_envs=5, split="val")
     td, base = env.reset(), state.reset()
     assert td["observation"].shape == (5, 13)
     names = [f["name"] for f in env.obs_fn.features()[10:]]
@@ -317,8 +318,8 @@ def test_pursuit_accel_adds_the_opponents_acceleration_the_env_reports(scenarios
 
 
 def test_pursuit_world_adds_where_the_drone_is_on_the_map(scenarios):
-    env = make_env("observation=pursuit_world", scenarios=scenarios, num_envs=5, split="val")
-    state = make_env("observation=pursuit_state", scenarios=scenarios, num_envs=5, split="val")
+    env = make_env(V4, "observation=pursuit_world", scenarios=scenarios, num_envs=5, split="val")
+    state = make_env(V4, "observation=pursuit_state", scenarios=scenarios, num_envs=5, split="val")
     td, base = env.reset(), state.reset()
     assert td["observation"].shape == (5, 13)
     features = env.obs_fn.features()
@@ -332,6 +333,31 @@ def test_pursuit_world_adds_where_the_drone_is_on_the_map(scenarios):
         torch.testing.assert_close(td["observation"][:, 4:7], td["positions"][:, 0])
         td = env.step(td.set("action", torch.ones(5, 3)))["next"]
         base = state.step(base.set("action", torch.ones(5, 3)))["next"]
+    check_env_specs(env)
+
+
+def test_pursuit_route_adds_the_defenders_next_two_setpoints(scenarios):
+    env = make_env(V4, "observation=pursuit_route", scenarios=scenarios, num_envs=5, split="val")
+    state = make_env(V4, "observation=pursuit_state", scenarios=scenarios, num_envs=5, split="val")
+    td, base = env.reset(), state.reset()
+    assert td["observation"].shape == (5, 16)
+    names = [f["name"] for f in env.obs_fn.features()[4:10]]
+    assert names[0] == "(setpoint - p_own).x" and names[3] == "(next_setpoint - p_own).x"
+    moved_on = 0
+    for _ in range(120):
+        obs, own = td["observation"], td["positions"][:, 0]
+        torch.testing.assert_close(obs[:, [0, 1, 2, 3, *range(10, 16)]], base["observation"])
+        torch.testing.assert_close(obs[:, 4:7], td["setpoints"][:, 0] - own)
+        ahead, waypoint = obs[:, 7:10] + own, td["waypoint"][:, 0]
+        td = env.step(td.set("action", torch.ones(5, 3)))["next"]
+        base = state.step(base.set("action", torch.ones(5, 3)))["next"]
+        # A defender that reached its setpoint flies to the one the attacker saw next.
+        on = td["waypoint"][:, 0] > waypoint
+        torch.testing.assert_close(td["setpoints"][on, 0], ahead[on])
+        moved_on += int(on.sum())
+        if td["done"].any():
+            break
+    assert moved_on >= 2  # the check above was made
     check_env_specs(env)
 
 
@@ -394,8 +420,8 @@ def test_a_held_actor_keeps_its_policy_while_the_critics_learn(scenarios):
     from rlplat.experiment.config import compose_config
     from rlplat.experiment.training import held_actor, make_agent
 
-    cfg = compose_config("train", ["algo.compile=false", "algo.batch_size=32"])
-    env = make_env(scenarios=scenarios, num_envs=8)
+    cfg = compose_config("train", [V4, "algo.compile=false", "algo.batch_size=32"])
+    env = make_env(V4, scenarios=scenarios, num_envs=8)  # a 3-d correction
     agent = make_agent(net_spec(env.obs_fn.scale, 3, cfg.algo), env, cfg.algo, "cpu")
     loc_rows = agent.actor.module[0].module[0].body[-1].weight[:3]
     assert loc_rows.abs().max() == 0  # actor_zero_mean: a zero correction, proportional nav.

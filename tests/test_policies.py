@@ -76,7 +76,7 @@ def test_setpoint_follower_holds_once_the_route_is_flown():
 
 def test_a_team_flies_one_action_per_drone(tmp_path, write_small_set):
     two = write_small_set(tmp_path / "2v1", "scenario.attackers=2")
-    env = make_env(scenarios=two, num_envs=3)
+    env = make_env("drone=attacker_v4", scenarios=two, num_envs=3)  # a 3-d action per drone
     policy = make_scripted_policy("proportional_navigation", env)
     td = policy(env.reset())
     assert env.action_key == ("attacker", "action")

@@ -349,7 +349,7 @@ def test_a_team_trained_defender_network_is_refused_for_scripted_defenders(
 
 
 def test_a_capture_pays_every_attacker_and_the_root_reward_is_the_team_mean(team_sets):
-    env = make_env(scenarios=team_sets[2, 1], split="val", num_envs=16)
+    env = make_env("drone=attacker_v4", scenarios=team_sets[2, 1], split="val", num_envs=16)
     env.set_seed(0)
     rollout = env.rollout(400, make_scripted_policy("pure_pursuit", env), break_when_any_done=False)
     nxt = rollout["next"]

@@ -11,7 +11,10 @@ from rlplat.experiment.config import compose_config
 
 def test_cli_run_writes_the_run_directory(scenarios, tmp_path, tiny, train_cli):
     run = tmp_path / "run"
-    res = train_cli(*tiny, f"scenarios_dir={scenarios.path}", f"hydra.run.dir={run}")
+    # attacker_v4: a scripted start of proportional navigation
+    res = train_cli(
+        *tiny, "drone=attacker_v4", f"scenarios_dir={scenarios.path}", f"hydra.run.dir={run}"
+    )
     assert res.returncode == 0, res.stderr[-2000:]
     assert res.stdout.strip().splitlines()[-1].startswith("test capture rate ")
     assert str(run) in res.stdout
@@ -67,7 +70,8 @@ def test_component_swaps_train(scenarios, tmp_path, overrides, tiny_run):
 
 
 def test_sac_paper_matches_the_paper(scenarios):
-    algo = compose_config("train", ["algo=sac_paper"]).algo
+    # attacker_v3 (the paper's interface) sets no algo value of its own
+    algo = compose_config("train", ["algo=sac_paper", "drone=attacker_v3"]).algo
     assert list(algo.actor_cells) == list(algo.critic_cells) == [64, 64]
     assert algo.activation == "relu" and algo.batch_size == 128 and algo.gamma == 0.99
     assert algo.actor_lr == algo.critic_lr == 1e-3 and algo.target_entropy == "auto"
@@ -87,9 +91,10 @@ def test_loggers_write_inside_the_run_directory(scenarios, tmp_path, logger, mon
 
 
 def test_resume_continues_counters_and_refuses_another_interface(scenarios, tmp_path, tiny_run):
-    first = tiny_run(scenarios, tmp_path)
+    v4 = "drone=attacker_v4"  # eq. 3: a capture pays 10
+    first = tiny_run(scenarios, tmp_path, v4)
     saved = load_checkpoint(tmp_path / "checkpoints" / "last.pt")
-    resumed = tiny_run(scenarios, tmp_path, "resume=true", "train.total_frames=512")
+    resumed = tiny_run(scenarios, tmp_path, v4, "resume=true", "train.total_frames=512")
     assert resumed["frames"] == first["frames"] + 256
     assert resumed["updates"] > first["updates"]
     assert resumed["wall_time_s"] > first["wall_time_s"]
@@ -102,10 +107,10 @@ def test_resume_continues_counters_and_refuses_another_interface(scenarios, tmp_
         ConfigError,
         match=r"in env\.capture_radius \(1\.2 -> 2\.0\), reward\.terms\.capture \(10\.0 -> 5\.0\);",
     ):
-        tiny_run(scenarios, tmp_path, "resume=true", "env.capture_radius=2.0",
+        tiny_run(scenarios, tmp_path, v4, "resume=true", "env.capture_radius=2.0",
                  "reward.terms.capture=5.0")  # fmt: skip
     with pytest.raises(ConfigError, match=r"checkpoint: no file at .*last.pt"):
-        tiny_run(scenarios, tmp_path / "elsewhere", "resume=true")
+        tiny_run(scenarios, tmp_path / "elsewhere", v4, "resume=true")
 
 
 def test_best_checkpoint_loads_as_a_deterministic_policy(scenarios, tmp_path, tiny_run):

@@ -142,7 +142,11 @@ class CompiledUpdate:
         options = dict(OPTIONS)
         if not TRACE_GRAD:
             options["joint_custom_pre_pass"] = ReluGradAsProduct()
-        self._update = torch.compile(self._update_eager, fullgraph=TRACE_GRAD, options=options)
+        # Static shapes: a second run in one process with other network widths compiles its
+        # own graph (a dynamic-shape recompile of the update crashes in inductor).
+        self._update = torch.compile(
+            self._update_eager, fullgraph=TRACE_GRAD, dynamic=False, options=options
+        )
         self.bind()
 
     def bind(self) -> None:

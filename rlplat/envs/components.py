@@ -28,6 +28,8 @@ class DroneView:
             defender, defenders of an attacker), in drone order.
         setpoint: (*B, 3) float32 m, the route setpoint the (first) defender flies to (its last
             one once the route is flown).
+        next_setpoint: (*B, 3) float32 m, the (first) defender's setpoint after that one (its
+            last one at the end of its route); None where no observation reads it.
         mate_position, mate_velocity: (*B, K, 3) float32, the drone's team-mates in drone
             order; None (or K = 0) for a drone that flies alone.
         other_in_play, mate_in_play: (*B, M) and (*B, K) bool, which opponents and team-mates
@@ -44,6 +46,7 @@ class DroneView:
     other_position: Tensor
     other_velocity: Tensor
     setpoint: Tensor | None = None
+    next_setpoint: Tensor | None = None
     mate_position: Tensor | None = None
     mate_velocity: Tensor | None = None
     other_in_play: Tensor | None = None
@@ -90,6 +93,7 @@ class _Observation:
     own_layout: tuple[str, ...] = ()  # "p"/"v"/"w" per 3-vector, "s" per speed, "t" per time
     other_layout: tuple[str, ...] = ()  # "p", "v" or "a" per 3-vector of each other drone's block
     own_names: tuple[str, ...] = ()  # what each own 3-vector is (same order as own_layout)
+    route_ahead: bool = False  # reads the view's next_setpoint
     other_names: tuple[str, ...] = ()  # each other drone's, "{d}" standing for that drone
 
     def __init__(
@@ -303,6 +307,27 @@ class PursuitWorldObservation(PursuitStateObservation):
         return [*super()._own(view), view.own_position]
 
 
+class PursuitRouteObservation(PursuitStateObservation):
+    """``pursuit_state`` and the (first) defender's route ahead: its next two setpoints.
+
+    s = [v_own, max_speed_own, setpoint - p_own, next_setpoint - p_own, (p_other - p_own,
+    v_other - v_own) per other drone], (*B, 16) with one opponent. A defender on a known route
+    (a patrol) will be near its setpoints: a faster defender is met by flying to where its
+    route goes, which no law of its present position and velocity can do. This is more than
+    the law sees: the route is known in advance, as the capture ceiling assumes.
+    """
+
+    own_layout = ("v", "s", "p", "p")
+    own_names = ("v_own", "max_speed_own", "setpoint - p_own", "next_setpoint - p_own")
+    route_ahead = True  # the env fills the view's next_setpoint
+
+    def _own(self, view: DroneView) -> list[Tensor]:
+        if view.setpoint is None or view.next_setpoint is None:
+            raise ValueError("observation pursuit_route: the view has no setpoints")
+        ahead = [view.setpoint - view.own_position, view.next_setpoint - view.own_position]
+        return [*super()._own(view), *ahead]
+
+
 class RouteStateObservation(RelativeStateObservation):
     """What a route-flying defender needs: its own velocity, the way to its next setpoint and
     each other drone's relative state.
@@ -326,6 +351,7 @@ OBSERVATIONS = {
     "pursuit_clock": PursuitClockObservation,
     "pursuit_accel": PursuitAccelObservation,
     "pursuit_world": PursuitWorldObservation,
+    "pursuit_route": PursuitRouteObservation,
     "route_state": RouteStateObservation,
 }
 

@@ -496,6 +496,11 @@ class PursuitEnv(EnvBase):
         last = self.routes.shape[1] - 1
         return self.routes[self.route, self.waypoint.clamp(max=last)], self.waypoint > last
 
+    def _target_after(self) -> Tensor:
+        """Each defender's setpoint after its current one (N, m, 3); the last one at the end."""
+        last = self.routes.shape[1] - 1
+        return self.routes[self.route, (self.waypoint + 1).clamp(max=last)]
+
     def guidance(self, p: Tensor, v: Tensor, a: Tensor | None = None) -> Tensor:
         """A guided action's guidance for each attacker (N, k, 3): proportional navigation
         towards its nearest defender in play, from positions p, velocities v and accelerations
@@ -547,6 +552,7 @@ class PursuitEnv(EnvBase):
                 gather_drones(p[:, self.attackers], near).unsqueeze(-2),
                 gather_drones(v[:, self.attackers], near).unsqueeze(-2),
                 target,
+                next_setpoint=self._target_after(),
                 own_max_speed=speed,
                 time_left=self._time_left(p.dtype).unsqueeze(1).expand_as(speed),
                 other_acceleration=gather_drones(
@@ -585,6 +591,10 @@ class PursuitEnv(EnvBase):
         if t > 1:
             view = replace(view, mate_position=own_p[:, self._mate_index],
                            mate_velocity=own_v[:, self._mate_index])  # fmt: skip
+        if self.obs_fn.route_ahead:  # an observation that reads the route ahead
+            ahead = self._target_after()
+            ahead = ahead if self.learner != ATTACKER else ahead[:, :1].expand(n, t, 3)
+            view = replace(view, next_setpoint=ahead)
         if "a" in self.obs_fn.other_layout:  # an observation that reads accelerations
             a = self.acceleration
             other_a = a[:, self.opponents].unsqueeze(1).expand(n, t, -1, 3)
