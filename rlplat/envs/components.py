@@ -93,8 +93,8 @@ class _Observation:
     own_layout: tuple[str, ...] = ()  # "p"/"v"/"w" per 3-vector, "s" per speed, "t" per time
     other_layout: tuple[str, ...] = ()  # "p", "v" or "a" per 3-vector of each other drone's block
     own_names: tuple[str, ...] = ()  # what each own 3-vector is (same order as own_layout)
-    route_ahead: bool = False  # reads the view's next_setpoint
     other_names: tuple[str, ...] = ()  # each other drone's, "{d}" standing for that drone
+    route_ahead: bool = False  # reads the view's next_setpoint
 
     def __init__(
         self,

@@ -493,13 +493,13 @@ class PursuitEnv(EnvBase):
 
     def _target(self) -> tuple[Tensor, Tensor]:
         """Each defender's current setpoint (N, m, 3) and whether its route is done (N, m)."""
-        last = self.routes.shape[1] - 1
-        return self.routes[self.route, self.waypoint.clamp(max=last)], self.waypoint > last
+        return self._setpoint(0), self.waypoint >= self.routes.shape[1]
 
-    def _target_after(self) -> Tensor:
-        """Each defender's setpoint after its current one (N, m, 3); the last one at the end."""
+    def _setpoint(self, ahead: int) -> Tensor:
+        """Each defender's setpoint ``ahead`` after its current one (N, m, 3); the route's last
+        one beyond its end."""
         last = self.routes.shape[1] - 1
-        return self.routes[self.route, (self.waypoint + 1).clamp(max=last)]
+        return self.routes[self.route, (self.waypoint + ahead).clamp(max=last)]
 
     def guidance(self, p: Tensor, v: Tensor, a: Tensor | None = None) -> Tensor:
         """A guided action's guidance for each attacker (N, k, 3): proportional navigation
@@ -552,7 +552,7 @@ class PursuitEnv(EnvBase):
                 gather_drones(p[:, self.attackers], near).unsqueeze(-2),
                 gather_drones(v[:, self.attackers], near).unsqueeze(-2),
                 target,
-                next_setpoint=self._target_after(),
+                next_setpoint=self._setpoint(1),
                 own_max_speed=speed,
                 time_left=self._time_left(p.dtype).unsqueeze(1).expand_as(speed),
                 other_acceleration=gather_drones(
@@ -584,17 +584,18 @@ class PursuitEnv(EnvBase):
         other_p = p[:, self.opponents].unsqueeze(1).expand(n, t, -1, 3)
         other_v = v[:, self.opponents].unsqueeze(1).expand(n, t, -1, 3)
         target, route_done = self._target()
-        setpoint = target if self.learner != ATTACKER else target[:, :1].expand(n, t, 3)
-        view = DroneView(own_p, own_v, other_p, other_v, setpoint,
+
+        def route_view(x: Tensor) -> Tensor:  # each defender's own, or every attacker the first's
+            return x if self.learner != ATTACKER else x[:, :1].expand(n, t, 3)
+
+        view = DroneView(own_p, own_v, other_p, other_v, route_view(target),
                          own_max_speed=self.max_speed[:, self.team],
                          time_left=self._time_left(p.dtype).unsqueeze(1).expand(n, t))  # fmt: skip
         if t > 1:
             view = replace(view, mate_position=own_p[:, self._mate_index],
                            mate_velocity=own_v[:, self._mate_index])  # fmt: skip
         if self.obs_fn.route_ahead:  # an observation that reads the route ahead
-            ahead = self._target_after()
-            ahead = ahead if self.learner != ATTACKER else ahead[:, :1].expand(n, t, 3)
-            view = replace(view, next_setpoint=ahead)
+            view = replace(view, next_setpoint=route_view(self._setpoint(1)))
         if "a" in self.obs_fn.other_layout:  # an observation that reads accelerations
             a = self.acceleration
             other_a = a[:, self.opponents].unsqueeze(1).expand(n, t, -1, 3)
