@@ -68,6 +68,7 @@ def test_registries_match_config_groups():
         "attacker_v7",
         "attacker_v8",
         "attacker_v9",
+        "attacker_v10",
         "defender_v1",
     }
 
@@ -83,6 +84,7 @@ def test_registries_match_config_groups():
         ("attacker_v6", 10),
         ("attacker_v8", 10),
         ("attacker_v9", 16),
+        ("attacker_v10", 20),
     ],
 )
 def test_drone_bundles_pick_their_observation_and_cli_wins(scenarios, drone, dim):

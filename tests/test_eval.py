@@ -138,7 +138,7 @@ def test_baseline_registry_errors(scenarios):
     with pytest.raises(
         ConfigError,
         match=r"policy: setpoint_follower flies the defender, this run's learner is the "
-        r"attacker; valid: pure_pursuit, proportional_navigation$",
+        r"attacker; valid: pure_pursuit, proportional_navigation, route_intercept$",
     ):
         make_scripted_policy("setpoint_follower", env)
 
@@ -223,23 +223,24 @@ def test_compare_mode_flies_every_baseline_in_one_command(trained_run):
         "evaluate", [f"run_dir={trained_run}", "split=val", "compare=true", "plots=false"]
     )
     lines = evaluate_from_config(cfg)
-    assert [line.split(":")[0] for line in lines[:3]] == [
+    assert [line.split(":")[0] for line in lines[:4]] == [
         "best",
         "pure_pursuit",
         "proportional_navigation",
+        "route_intercept",
     ]
-    assert "| pure_pursuit | 16 |" in lines[3]
+    assert "| pure_pursuit | 16 |" in lines[4]
     table, rest = (
         (trained_run / "eval" / "compare-val.md")
         .read_text()
         .split("## Against the capture ceiling")
     )
     ceiling, paired = rest.split("## Against proportional navigation, scenario by scenario")
-    assert table.count("\n| ") == 4  # the header and one row per policy
+    assert table.count("\n| ") == 5  # the header and one row per policy
     # the ceiling table: its header, the scenarios it covers, the ceiling, one row per policy
-    assert ceiling.count("\n| ") == 6 and "\n| proportional_navigation |" in ceiling
+    assert ceiling.count("\n| ") == 7 and "\n| proportional_navigation |" in ceiling
     # every other policy against the law, on the 16 validation scenarios
-    assert paired.count("\n| ") == 3 and "| pure_pursuit | 1 | 16 | " in paired
+    assert paired.count("\n| ") == 4 and "| pure_pursuit | 1 | 16 | " in paired
     assert not list((trained_run / "eval" / "val-best").glob("*.png"))  # plots=false
 
 

@@ -1,11 +1,13 @@
 """Every policy that is not being trained, in one place.
 
 - The scripted references a learned controller must beat: pure pursuit, proportional
-  navigation and the setpoint follower. Each is a ``TensorDictModule`` that reads only entries
-  of the env's output (``positions``, ``velocities``, ``max_speed``, ``caught``, ``setpoints``,
-  ``route_done``) and writes the env's action key (``action``, or a team's
-  ``("attacker", "action")``) in the action's [-1, 1] units: the command divided by the drone's
-  maximum speed per axis. :data:`POLICIES` names them (``evaluate.py policy=<name>``).
+  navigation, the route-intercept law and the setpoint follower. Each is a
+  ``TensorDictModule`` that reads only entries of the env's output (``positions``,
+  ``velocities``, ``max_speed``, ``caught``, ``setpoints``, ``route_done``, ``waypoint``,
+  ``scenario_index``; the route-intercept law also knows the split's routes) and writes the
+  env's action key (``action``, or a team's ``("attacker", "action")``) in the action's
+  [-1, 1] units: the command divided by the drone's maximum speed per axis. :data:`POLICIES`
+  names them (``evaluate.py policy=<name>``).
 - :class:`NetworkController`: a trained actor's deterministic action as a plain torch module of
   a :class:`~rlplat.envs.components.DroneView`, what the env flies for a scripted drone (the
   defender's ``nn`` strategy); :func:`load_controller` reads one from a checkpoint or the
@@ -30,11 +32,16 @@ from torchrl.data import Bounded
 from rlplat.agents.checkpoint import actor_from_state, load_checkpoint, saved_interface
 from rlplat.envs.components import OBSERVATIONS, DroneView
 from rlplat.envs.kinematics import (
+    ROUTE_LAG,
     aim_velocity,
     follow_route,
     gather_drones,
     intercept_action,
     nearest,
+    route_ahead,
+    route_intercept,
+    route_law,
+    route_times,
     targets,
 )
 from rlplat.envs.pursuit import ROLES, PursuitEnv
@@ -163,6 +170,73 @@ class ProportionalNavigation(_Scripted):
         return self._action(action)
 
 
+class RouteIntercept(ProportionalNavigation):
+    """Fly to where the defender's known route lets the attacker meet it, then proportional
+    navigation: the classical law with the information of ``observation=pursuit_route`` and
+    more (the whole route ahead, not two setpoints).
+
+    Each step, for the nearest defender in play: its path as a ``setpoints`` defender would fly
+    the rest of its route (:func:`rlplat.envs.kinematics.route_path`), and the earliest point of
+    that path the attacker can reach in time (:func:`~rlplat.envs.kinematics.route_intercept`,
+    at full speed per axis after a start-up ``lag``). The attacker flies to that point
+    (``gain`` per metre, saturated at its maximum speed) and waits there, until the defender is
+    due within ``homing_time``; from then on, and where no point is reachable, it flies
+    proportional navigation (``lead``, ``max_lead_time``). A defender that leaves its route
+    (the ``nn`` strategy evades) is met where its route would have taken it, so the law can do
+    worse than proportional navigation there.
+
+    Args:
+        routes: (R, S, 3) m, the scenario set's routes. scenario_routes: (E, m) int64, each
+            defender's route in every scenario of the split (``scenario_index`` rows).
+        capture_radius: m, how close counts as a meeting. time_limit: s, the episode's.
+        homing_time: s, switch to proportional navigation when the meeting is this close.
+        gain, lead, max_lead_time: as :class:`ProportionalNavigation`.
+    """
+
+    in_keys = ("positions", "velocities", "max_speed", "caught", "waypoint", "scenario_index")
+
+    def __init__(
+        self,
+        *,
+        routes: Tensor,
+        scenario_routes: Tensor,
+        capture_radius: float,
+        time_limit: float,
+        homing_time: float = 2.0,
+        **pn: Any,
+    ) -> None:
+        super().__init__(**pn)
+        if not homing_time >= 0:
+            raise ConfigError(f"route_intercept.homing_time: must be >= 0, got {homing_time}")
+        self.register_buffer("routes", routes.float())
+        self.register_buffer("scenario_routes", scenario_routes.long())
+        self.register_buffer("times", route_times(time_limit))
+        self.capture_radius, self.homing_time = float(capture_radius), float(homing_time)
+
+    def forward(
+        self,
+        positions: Tensor,
+        velocities: Tensor,
+        max_speed: Tensor,
+        caught: Tensor,
+        waypoint: Tensor,
+        scenario_index: Tensor,
+    ) -> Tensor:
+        own, speed, near = self._nearest(positions, max_speed, caught)
+        other = gather_drones(positions[:, self.others], near)  # (N, K, 3)
+        rel = other - own
+        v_other = gather_drones(velocities[:, self.others], near)
+        homing = intercept_action(rel, v_other, speed, self.gain, self.lead, self.max_lead_time)
+        routes = self.routes[self.scenario_routes[scenario_index.reshape(-1).long()]]
+        other_speed = gather_drones(max_speed[:, self.others], near)
+        aim, due, reachable = route_intercept(
+            own, speed.squeeze(-1), other, route_ahead(routes, waypoint, near), other_speed,
+            times=self.times, lag=ROUTE_LAG, reach=self.capture_radius,
+        )  # fmt: skip
+        action = route_law(homing, aim - own, due, reachable, speed, self.gain, self.homing_time)
+        return self._action(action)
+
+
 class SetpointFollower(_Scripted):
     """The defender's ``setpoints`` strategy as a policy: fly to the route's next setpoint.
 
@@ -196,12 +270,24 @@ class Scripted:
     module: Callable[..., _Scripted]
     role: Literal["attacker", "defender"]
     gain: Literal["pursuit_gain", "setpoint_gain"]
+    env_args: Callable[[PursuitEnv], dict[str, Any]] | None = None  # what else it takes
+
+
+def _known_routes(env: PursuitEnv) -> dict[str, Any]:
+    """What :class:`RouteIntercept` knows in advance: the routes of the env's split."""
+    return {
+        "routes": env.routes,
+        "scenario_routes": env.scenarios["route"],
+        "capture_radius": env.capture_radius,
+        "time_limit": env.max_steps * env.control_period,
+    }
 
 
 #: Scripted policies by name (``evaluate.py policy=<name>``, ``algo.init_policy``).
 POLICIES: dict[str, Scripted] = {
     "pure_pursuit": Scripted(PurePursuit, "attacker", "pursuit_gain"),
     "proportional_navigation": Scripted(ProportionalNavigation, "attacker", "pursuit_gain"),
+    "route_intercept": Scripted(RouteIntercept, "attacker", "pursuit_gain", _known_routes),
     "setpoint_follower": Scripted(SetpointFollower, "defender", "setpoint_gain"),
 }
 
@@ -230,12 +316,13 @@ def make_scripted_policy(name: str, env: PursuitEnv, **kwargs: Any) -> TensorDic
             f"policy: {name} flies the {scripted.role}, this run's learner is the {learner}; "
             f"valid: {', '.join(policies_for(learner))}"
         )
+    env_args = scripted.env_args(env) if scripted.env_args else {}
     module = scripted.module(
         learner=learner,
         attackers=env.num_attackers,
         defenders=env.num_defenders,
         team=env.group is not None,
-        **{"gain": getattr(env, scripted.gain), **kwargs},
+        **{"gain": getattr(env, scripted.gain), **env_args, **kwargs},
     )
     if getattr(env.action_fn, "guided", False):
         if not getattr(env.action_fn, "invertible", True):
@@ -250,23 +337,29 @@ def make_scripted_policy(name: str, env: PursuitEnv, **kwargs: Any) -> TensorDic
 
 class Unguided(nn.Module):
     """A scripted policy flown through a guided action (a correction to proportional
-    navigation, :class:`rlplat.envs.components.GuidedVelocityAction`, or the law's parameters
-    at zero and a correction, ``GuidanceLawAction``): the correction that makes the env fly
-    exactly the policy's own command (for ``scale >= 2``, resp. ``correction_reach >= 2``)."""
+    navigation, :class:`rlplat.envs.components.GuidedVelocityAction`, or to the route-intercept
+    law, ``RouteLawAction``, or the law's parameters at zero and a correction,
+    ``GuidanceLawAction``): the correction that makes the env fly exactly the policy's own
+    command (for ``scale >= 2``, resp. ``correction_reach >= 2``)."""
 
     def __init__(self, policy: _Scripted, env: PursuitEnv) -> None:
         super().__init__()
         self.policy, self.action = policy, env.action_fn
-        self.guidance = ProportionalNavigation(
-            gain=self.action.gain,
-            lead=self.action.lead,
-            max_lead_time=self.action.max_lead_time,
-            accel_lead=self.action.accel_lead,
-            learner=policy.learner,
-            attackers=env.num_attackers,
-            defenders=env.num_defenders,
-            team=policy.team,
-        )
+        law = {
+            "gain": self.action.gain,
+            "lead": self.action.lead,
+            "max_lead_time": self.action.max_lead_time,
+            "learner": policy.learner,
+            "attackers": env.num_attackers,
+            "defenders": env.num_defenders,
+            "team": policy.team,
+        }
+        if getattr(self.action, "reads_route", False):  # the route-intercept law
+            self.guidance = RouteIntercept(
+                **law, **_known_routes(env), homing_time=self.action.homing_time
+            )
+        else:
+            self.guidance = ProportionalNavigation(**law, accel_lead=self.action.accel_lead)
         self.in_keys = tuple(dict.fromkeys((*policy.in_keys, *self.guidance.in_keys)))
 
     def forward(self, *inputs: Tensor) -> Tensor:

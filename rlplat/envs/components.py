@@ -13,7 +13,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from rlplat.envs.kinematics import aim_velocity, intercept_action
+from rlplat.envs.kinematics import aim_velocity, intercept_action, route_law
 from rlplat.errors import ConfigError
 
 
@@ -39,6 +39,11 @@ class DroneView:
         other_acceleration, mate_acceleration: (*B, M, 3) and (*B, K, 3) float32 m/s^2, each
             opponent's and team-mate's mean acceleration over the last control period; None
             where no observation reads them.
+        intercept, intercept_time: (*B, 3) float32 m and (*B,) float32 s, an attacker's meeting
+            point on its nearest defender's route and when the defender is there
+            (:func:`rlplat.envs.kinematics.route_intercept`; where none is reachable, the
+            defender's position after the episode's time limit from now, and that time); None
+            where no observation reads them.
     """
 
     own_position: Tensor
@@ -55,6 +60,8 @@ class DroneView:
     time_left: Tensor | None = None
     other_acceleration: Tensor | None = None
     mate_acceleration: Tensor | None = None
+    intercept: Tensor | None = None
+    intercept_time: Tensor | None = None
 
 
 def inside_ellipsoid(rel: Tensor, semi_axes: Tensor) -> Tensor:
@@ -95,6 +102,7 @@ class _Observation:
     own_names: tuple[str, ...] = ()  # what each own 3-vector is (same order as own_layout)
     other_names: tuple[str, ...] = ()  # each other drone's, "{d}" standing for that drone
     route_ahead: bool = False  # reads the view's next_setpoint
+    reads_intercept: bool = False  # reads the view's intercept and intercept_time
 
     def __init__(
         self,
@@ -328,6 +336,30 @@ class PursuitRouteObservation(PursuitStateObservation):
         return [*super()._own(view), *ahead]
 
 
+class PursuitInterceptObservation(PursuitRouteObservation):
+    """``pursuit_route`` and where the route lets the attacker meet the defender: the meeting
+    point of the route-intercept law and the time until the defender is there.
+
+    s = [v_own, max_speed_own, setpoint - p_own, next_setpoint - p_own, intercept - p_own,
+    t_intercept, p_other - p_own, v_other - v_own], (*B, 20) with one opponent. The meeting
+    point is the earliest point of the defender's path, as a ``setpoints`` defender flies the
+    rest of its route, that the attacker can reach at full speed per axis
+    (:func:`rlplat.envs.kinematics.route_intercept`): what ``action=route_law`` flies to, so
+    the policy sees what its law does. Attackers only.
+    """
+
+    own_layout = ("v", "s", "p", "p", "p", "t")
+    own_names = ("v_own", "max_speed_own", "setpoint - p_own", "next_setpoint - p_own",
+                 "intercept - p_own", "t_intercept")  # fmt: skip
+    reads_intercept = True  # the env fills the view's intercept and intercept_time
+
+    def _own(self, view: DroneView) -> list[Tensor]:
+        if view.intercept is None or view.intercept_time is None:
+            raise ValueError("observation pursuit_intercept: the view has no meeting point")
+        meet = [view.intercept - view.own_position, view.intercept_time.unsqueeze(-1)]
+        return [*super()._own(view), *meet]
+
+
 class RouteStateObservation(RelativeStateObservation):
     """What a route-flying defender needs: its own velocity, the way to its next setpoint and
     each other drone's relative state.
@@ -352,6 +384,7 @@ OBSERVATIONS = {
     "pursuit_accel": PursuitAccelObservation,
     "pursuit_world": PursuitWorldObservation,
     "pursuit_route": PursuitRouteObservation,
+    "pursuit_intercept": PursuitInterceptObservation,
     "route_state": RouteStateObservation,
 }
 
@@ -485,6 +518,91 @@ class GuidedVelocityAction(VelocityAction):
         return [
             f"The law aims with the target's velocity v + {term} * a, a its mean",
             "acceleration over the last control period (augmented proportional navigation).",
+        ]
+
+
+class RouteLawAction(GuidedVelocityAction):
+    """A learned correction to the route-intercept law (a residual policy on a law that knows
+    the defender's route).
+
+    As :class:`GuidedVelocityAction`, ``clamp(g + scale * action, -1, 1) * max_speed`` per
+    axis, with ``g`` the action of :func:`rlplat.envs.kinematics.route_law`: fly to the
+    earliest point of the nearest defender's route-flying path the attacker can reach and hold
+    there until the defender is due within ``homing_time``, proportional navigation from then
+    on and where no such point exists (the ``route_intercept`` baseline). The env computes the
+    meeting point from the defender's route (known in advance, as the capture ceiling
+    assumes). A zero action flies the law; with ``scale >= 2`` :meth:`inverse` flies any
+    command. Attackers only.
+
+    Args:
+        gain, lead, max_lead_time, scale: as :class:`GuidedVelocityAction` (``gain`` is also
+            the command per metre to the meeting point).
+        homing_time: s, when the law turns to proportional navigation.
+    """
+
+    name = "route_law"
+    reads_route = True  # the env passes the meeting point with the guidance
+
+    def __init__(
+        self,
+        *,
+        gain: float = 5.0,
+        lead: float = 0.5,
+        max_lead_time: float = 4.0,
+        scale: float = 2.0,
+        homing_time: float = 2.0,
+    ) -> None:
+        super().__init__(gain=gain, lead=lead, max_lead_time=max_lead_time, scale=scale)
+        if not homing_time >= 0:
+            raise ConfigError(f"action.homing_time: must be >= 0, got {homing_time}")
+        self.homing_time = float(homing_time)
+
+    def guidance(
+        self,
+        rel: Tensor,
+        v_other: Tensor,
+        max_speed: Tensor,
+        a_other: Tensor | None = None,
+        meeting: tuple[Tensor, Tensor, Tensor] | None = None,
+    ) -> Tensor:
+        """The law's action (*B, 3); ``meeting`` is the meeting point relative to the pursuer
+        (*B, 3) m, when the defender is there (*B,) s and whether it is reachable (*B,)
+        (:func:`rlplat.envs.kinematics.route_intercept`)."""
+        if meeting is None:
+            raise ValueError("action route_law: the guidance needs the meeting point")
+        homing = super().guidance(rel, v_other, max_speed)
+        aim, due, reachable = meeting
+        speed = max_speed.unsqueeze(-1)
+        return route_law(homing, aim, due, reachable, speed, self.gain, self.homing_time)
+
+    def card(self) -> dict[str, Any]:
+        return {
+            "features": ["dv_cmd.x", "dv_cmd.y", "dv_cmd.z"],
+            "unit": "1: a correction to the route-intercept law; the velocity command is "
+            f"clamp(law + {self.scale:g} * action, -1, 1) times the drone's maximum speed per "
+            "axis",
+            "guidance": {**self._law_card(), "scale": self.scale},
+        }
+
+    def _law_card(self) -> dict[str, Any]:
+        return {
+            "law": "route_intercept (rlplat.envs.kinematics.route_law), proportional navigation "
+            "when homing (rlplat.envs.kinematics.intercept_action)",
+            "gain": self.gain,
+            "lead": self.lead,
+            "max_lead_time": self.max_lead_time,
+            "homing_time": self.homing_time,
+        }
+
+    def describe(self) -> list[str]:
+        return [
+            "action is a CORRECTION to the route-intercept law (action route_law): the velocity",
+            f"command is clamp(law + {self.scale:g} * action, -1, 1) x max speed per axis; the",
+            "law flies to the earliest reachable point of the defender's route-flying path",
+            f"(gain {self.gain:g}/s) and holds there until the defender is due within "
+            f"{self.homing_time:g} s,",
+            f"then proportional navigation (lead {self.lead:g}, max lead time "
+            f"{self.max_lead_time:g} s; rlplat.envs.kinematics.route_law).",
         ]
 
 
@@ -656,6 +774,7 @@ ACTIONS = {
     "velocity": VelocityAction,
     "guided_velocity": GuidedVelocityAction,
     "guidance_law": GuidanceLawAction,
+    "route_law": RouteLawAction,
 }
 
 

@@ -73,6 +73,131 @@ def intercept_action(
     return (gain * aim / max_speed).clamp(-1.0, 1.0)
 
 
+def route_path(position: Tensor, route: Tensor, max_speed: Tensor, times: Tensor) -> Tensor:
+    """Where a drone that flies ``route`` from ``position`` at full speed per axis will be.
+
+    The model of the ``setpoints`` strategy without its lags: from each setpoint to the next,
+    every axis moves at the maximum speed until it is there (speed limits are per axis, so a
+    short axis arrives first), and the drone moves on when the last axis arrives.
+
+    Args:
+        position: (*B, 3) m, the drone now.
+        route: (*B, S, 3) m, the setpoints it will fly to, in order (a route flown to its end
+            repeats its last setpoint: the drone holds there).
+        max_speed: (*B,) m/s per axis.
+        times: (T,) s from now, increasing.
+
+    Returns:
+        (*B, T, 3) m, the drone's position at each time.
+    """
+    points = torch.cat([position.unsqueeze(-2), route], -2)  # (*B, S + 1, 3)
+    step = points.diff(dim=-2)  # (*B, S, 3)
+    speed = max_speed.clamp_min(1e-6).unsqueeze(-1)
+    arrive = (step.abs().amax(-1) / speed).cumsum(-1)  # (*B, S) s, at each setpoint
+    t = times.to(position).expand(*arrive.shape[:-1], times.shape[0]).contiguous()
+    leg = torch.searchsorted(arrive.contiguous(), t, right=True)  # (*B, T): the leg flown
+    leg = leg.clamp(max=step.shape[-2] - 1)
+    start = torch.cat([torch.zeros_like(arrive[..., :1]), arrive[..., :-1]], -1)
+    index = leg.unsqueeze(-1).expand(*leg.shape, 3)
+    origin, move = points.gather(-2, index), step.gather(-2, index)  # (*B, T, 3)
+    flown = (t - start.gather(-1, leg)).clamp_min(0).unsqueeze(-1) * speed.unsqueeze(-1)
+    return origin + move.sign() * torch.minimum(move.abs(), flown)
+
+
+def route_ahead(routes: Tensor, waypoint: Tensor, index: Tensor) -> Tensor:
+    """The setpoints the chosen defenders have yet to fly, their last one repeated at the end.
+
+    Args:
+        routes: (N, m, S, 3) m, each defender's route. waypoint: (N, m) the index of each one's
+            next setpoint. index: (N, K) which defender each of K drones chooses.
+
+    Returns:
+        (N, K, S, 3) m: row j is setpoint ``waypoint + j`` of the chosen defender's route.
+    """
+    route, next_one = gather_drones(routes, index), gather_drones(waypoint, index)  # (N, K, ...)
+    last = route.shape[-2] - 1
+    ahead = (next_one.unsqueeze(-1) + torch.arange(last + 1, device=route.device)).clamp(max=last)
+    return route.gather(-2, ahead.unsqueeze(-1).expand(*ahead.shape, 3))
+
+
+def route_intercept(
+    own: Tensor,
+    own_speed: Tensor,
+    other: Tensor,
+    route: Tensor,
+    other_speed: Tensor,
+    *,
+    times: Tensor,
+    lag: float,
+    reach: float,
+    time_left: Tensor | None = None,
+) -> tuple[Tensor, Tensor]:
+    """The earliest point of a route-flying drone's path that a pursuer can reach in time.
+
+    The target's path is :func:`route_path`; the pursuer reaches a point at time ``t`` if its
+    largest per-axis gap to it is at most ``own_speed * (t - lag) + reach`` (full speed per axis
+    after a start-up lag). Where no point before ``time_left`` (or the last time) is reachable,
+    the answer is the target's position at that last time: the route's end, or as far along as
+    the horizon goes.
+
+    Args:
+        own: (*B, 3) m, the pursuer. own_speed: (*B,) m/s per axis, its maximum.
+        other, route, other_speed: the target, its setpoints ahead and its maximum speed (as
+            :func:`route_path`).
+        times: (T,) s from now, increasing: the instants tried.
+        lag: s, the pursuer's start-up lag. reach: m, how close counts (the capture radius).
+        time_left: (*B,) s, the time until the episode ends (None: no limit before the last
+            time).
+
+    Returns:
+        The point (*B, 3) m, the time the target is there (*B,) s and whether the pursuer can
+        be there by then (*B,) bool.
+    """
+    path = route_path(other, route, other_speed, times)  # (*B, T, 3)
+    gap = (path - own.unsqueeze(-2)).abs().amax(-1)  # (*B, T)
+    t = times.to(own)
+    reachable = gap <= own_speed.unsqueeze(-1) * (t - lag).clamp_min(0) + reach
+    last = torch.full_like(gap[..., 0], t.shape[0] - 1, dtype=torch.int64)
+    if time_left is not None:
+        within = t <= time_left.unsqueeze(-1)
+        reachable &= within
+        last = (within.sum(-1) - 1).clamp_min(0)
+    found = reachable.any(-1)
+    first = torch.where(found, reachable.to(torch.uint8).argmax(-1), last)
+    point = path.gather(-2, first.unsqueeze(-1).unsqueeze(-1).expand(*first.shape, 1, 3))
+    return point.squeeze(-2), t[first], found
+
+
+#: The route-intercept law's prediction: the pursuer's start-up lag (s) and the instants tried
+#: (every ROUTE_RESOLUTION s up to the episode's time limit).
+ROUTE_LAG, ROUTE_RESOLUTION = 0.0, 0.25
+
+
+def route_times(time_limit: float, device=None) -> Tensor:
+    """The instants (T,) s the route-intercept law tries, up to ``time_limit``."""
+    steps = max(1, round(time_limit / ROUTE_RESOLUTION))
+    return torch.arange(1, steps + 1, device=device) * ROUTE_RESOLUTION
+
+
+def route_law(
+    homing: Tensor,
+    aim: Tensor,
+    due: Tensor,
+    reachable: Tensor,
+    max_speed: Tensor,
+    gain: float,
+    homing_time: float,
+) -> Tensor:
+    """The route-intercept law's action in [-1, 1] per axis: fly to the meeting point ``aim``
+    (*B, 3) m relative to the pursuer (``gain`` per metre, saturated at ``max_speed`` (*B, 1)),
+    and hold there, until the target is ``due`` (*B,) s within ``homing_time``; from then on,
+    and where no meeting point is ``reachable`` (*B,), the ``homing`` action (*B, 3), e.g.
+    proportional navigation's."""
+    fly_to = (gain * aim / max_speed).clamp(-1.0, 1.0)
+    chase = (due <= homing_time) | ~reachable
+    return torch.where(chase.unsqueeze(-1), homing, fly_to)
+
+
 def targets(caught: Tensor) -> Tensor:
     """The defenders an attacker may still chase and measure, (N, m) bool: those not caught, or
     all of them once every one is (the episode ends then)."""

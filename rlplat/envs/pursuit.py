@@ -14,7 +14,17 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from rlplat.envs.components import DroneView, Reward, RewardContext, inside_ellipsoid
-from rlplat.envs.kinematics import follow_route, gather_drones, nearest, pure_pursuit, targets
+from rlplat.envs.kinematics import (
+    ROUTE_LAG,
+    follow_route,
+    gather_drones,
+    nearest,
+    pure_pursuit,
+    route_ahead,
+    route_intercept,
+    route_times,
+    targets,
+)
 from rlplat.errors import ConfigError
 from rlplat.scenarios import STRATEGIES, ScenarioSet
 
@@ -232,6 +242,11 @@ class PursuitEnv(EnvBase):
         if self._guided and learner != "attacker":
             raise ConfigError("action: a guided action flies attackers; this run's learner is "
                               f"the {learner} (valid: velocity)")  # fmt: skip
+        self._meets = bool(getattr(action, "reads_route", False))  # the guidance's meeting point
+        meets = self._meets or getattr(observation, "reads_intercept", False)
+        if meets and learner != "attacker":
+            raise ConfigError("observation/action: the route's meeting point is an attacker's; "
+                              f"this run's learner is the {learner}")  # fmt: skip
         self.dynamics = dynamics
         self.obs_fn, self.action_fn, self.reward_fn = observation, action, reward
         # Drones: attackers first, then defenders; the learner's role is its team.
@@ -251,6 +266,7 @@ class PursuitEnv(EnvBase):
         self.control_period = float(control_period)
         self.max_steps = math.ceil(time_limit / control_period - 1e-9)
         self.capture_radius = float(capture_radius)
+        self._route_times = route_times(self.max_steps * self.control_period, self.device)
         self.ground_altitude = float(ground_altitude)
         self.semi_axes = torch.tensor(vision_semi_axes, dtype=torch.float32, device=self.device)
         self.terminate_out_of_view = bool(terminate_out_of_view)
@@ -517,7 +533,28 @@ class PursuitEnv(EnvBase):
             v_other = gather_drones(v[:, self.defenders], near)
             if a is not None:
                 a_other = gather_drones(a[:, self.defenders], near)
-        return self.action_fn.guidance(rel, v_other, self.max_speed[:, self.attackers], a_other)
+        speed = self.max_speed[:, self.attackers]
+        if not self._meets:
+            return self.action_fn.guidance(rel, v_other, speed, a_other)
+        aim, due, reachable = self.meeting(p)
+        meeting = (aim - own, due, reachable)
+        return self.action_fn.guidance(rel, v_other, speed, a_other, meeting=meeting)
+
+    def meeting(self, p: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Where each attacker can meet its nearest defender in play on that defender's route,
+        from positions p (N, k + m, 3): the point (N, k, 3) m, when the defender is there
+        (N, k) s and whether the attacker can be there by then (N, k) bool
+        (:func:`rlplat.envs.kinematics.route_intercept`, the route flown as a ``setpoints``
+        defender flies it)."""
+        own, defenders = p[:, self.attackers], p[:, self.defenders]
+        near = nearest(own, defenders, targets(self.caught))
+        ahead = route_ahead(self.routes[self.route], self.waypoint, near)  # (N, k, S, 3)
+        speed = self.max_speed
+        return route_intercept(
+            own, speed[:, self.attackers], gather_drones(defenders, near), ahead,
+            gather_drones(speed[:, self.defenders], near), times=self._route_times,
+            lag=ROUTE_LAG, reach=self.capture_radius,
+        )  # fmt: skip
 
     def _relative(self, p: Tensor) -> Tensor:
         """Defender minus attacker position for every pair: (N, k, m, 3)."""
@@ -596,6 +633,9 @@ class PursuitEnv(EnvBase):
                            mate_velocity=own_v[:, self._mate_index])  # fmt: skip
         if self.obs_fn.route_ahead:  # an observation that reads the route ahead
             view = replace(view, next_setpoint=route_view(self._setpoint(1)))
+        if self.obs_fn.reads_intercept:  # an observation that reads the meeting point
+            aim, due, _ = self.meeting(p)
+            view = replace(view, intercept=aim, intercept_time=due)
         if "a" in self.obs_fn.other_layout:  # an observation that reads accelerations
             a = self.acceleration
             other_a = a[:, self.opponents].unsqueeze(1).expand(n, t, -1, 3)
