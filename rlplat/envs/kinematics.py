@@ -131,7 +131,7 @@ def route_intercept(
     lag: float,
     reach: float,
     time_left: Tensor | None = None,
-) -> tuple[Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor]:
     """The earliest point of a route-flying drone's path that a pursuer can reach in time.
 
     The target's path is :func:`route_path`; the pursuer reaches a point at time ``t`` if its
