@@ -55,6 +55,7 @@ import json
 import logging
 import math
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -257,6 +258,11 @@ class TestServer:
             raise RuntimeError("TestServer already started")
         ready: dict[str, Any] = {}
         started = threading.Event()
+        # The thread shares the interpreter lock with its process: a waiter that spins in
+        # Python (TorchRL's ParallelEnv polls its workers' flags so) would hold it for whole
+        # switch intervals (5 ms) between the server's callbacks, and a real-time continue of
+        # hundreds of ticks would miss its client's deadline. Hand the lock over every tick/10.
+        sys.setswitchinterval(min(sys.getswitchinterval(), _TICK_S / 10))
         self._thread = threading.Thread(
             target=self._run, args=(ready, started), name=f"airsim-testserver-{self.port}"
         )
