@@ -267,6 +267,7 @@ class PursuitEnv(EnvBase):
         self.max_steps = math.ceil(time_limit / control_period - 1e-9)
         self.capture_radius = float(capture_radius)
         self._route_times = route_times(self.max_steps * self.control_period, self.device)
+        self._meeting: tuple[Tensor, Tensor, Tensor] | None = None  # set by every output
         self.ground_altitude = float(ground_altitude)
         self.semi_axes = torch.tensor(vision_semi_axes, dtype=torch.float32, device=self.device)
         self.terminate_out_of_view = bool(terminate_out_of_view)
@@ -435,7 +436,7 @@ class PursuitEnv(EnvBase):
         # Command every drone: the other role by its script, the learners by the policy.
         p, v = self.dynamics.position, self.dynamics.velocity
         target, route_done = self._target()
-        guidance = self.guidance(p, v, self.acceleration) if self._guided else None
+        guidance = self.guidance(p, v, self.acceleration, self._meeting) if self._guided else None
         own = self.action_fn(action.reshape(n, t, -1), self.max_speed[:, self.team], guidance)
         if self.learner == ATTACKER:
             attack, defend = own, self._defender_command(p, v, target, route_done)
@@ -517,10 +518,17 @@ class PursuitEnv(EnvBase):
         last = self.routes.shape[1] - 1
         return self.routes[self.route, (self.waypoint + ahead).clamp(max=last)]
 
-    def guidance(self, p: Tensor, v: Tensor, a: Tensor | None = None) -> Tensor:
+    def guidance(
+        self,
+        p: Tensor,
+        v: Tensor,
+        a: Tensor | None = None,
+        meeting: tuple[Tensor, Tensor, Tensor] | None = None,
+    ) -> Tensor:
         """A guided action's guidance for each attacker (N, k, 3): proportional navigation
         towards its nearest defender in play, from positions p, velocities v and accelerations
-        a (N, k + m, 3; None: not known, the law leads on velocity only)."""
+        a (N, k + m, 3; None: not known, the law leads on velocity only). An action that reads
+        the route gets :meth:`meeting` of p (``meeting``: already computed for this state)."""
         own, defenders = p[:, self.attackers], p[:, self.defenders]
         a_other = None
         if self.num_defenders == 1:  # every attacker's nearest: the one defender
@@ -536,7 +544,7 @@ class PursuitEnv(EnvBase):
         speed = self.max_speed[:, self.attackers]
         if not self._meets:
             return self.action_fn.guidance(rel, v_other, speed, a_other)
-        aim, due, reachable = self.meeting(p)
+        aim, due, reachable = self.meeting(p) if meeting is None else meeting
         meeting = (aim - own, due, reachable)
         return self.action_fn.guidance(rel, v_other, speed, a_other, meeting=meeting)
 
@@ -633,8 +641,10 @@ class PursuitEnv(EnvBase):
                            mate_velocity=own_v[:, self._mate_index])  # fmt: skip
         if self.obs_fn.route_ahead:  # an observation that reads the route ahead
             view = replace(view, next_setpoint=route_view(self._setpoint(1)))
+        # The meeting point of this state: the observation's, and the next step's guidance.
+        self._meeting = self.meeting(p) if self._meets or self.obs_fn.reads_intercept else None
         if self.obs_fn.reads_intercept:  # an observation that reads the meeting point
-            aim, due, _ = self.meeting(p)
+            aim, due, _ = self._meeting
             view = replace(view, intercept=aim, intercept_time=due)
         if "a" in self.obs_fn.other_layout:  # an observation that reads accelerations
             a = self.acceleration
