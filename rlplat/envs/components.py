@@ -477,12 +477,16 @@ class GuidedVelocityAction(VelocityAction):
         action (command / max speed) under ``guidance``: exact for ``scale >= 2``."""
         return ((flown - guidance) / self.scale).clamp(-1.0, 1.0)
 
+    corrects = ("proportional navigation", "pn")  # the law corrected, and its term in the card
+
     def card(self) -> dict[str, Any]:
         """What an exported controller's action means (the ``action`` entry of its card)."""
+        law, term = self.corrects
         return {
             "features": ["dv_cmd.x", "dv_cmd.y", "dv_cmd.z"],
-            "unit": "1: a correction to proportional navigation; the velocity command is "
-            f"clamp(pn + {self.scale:g} * action, -1, 1) times the drone's maximum speed per axis",
+            "unit": f"1: a correction to {law}; the velocity command is "
+            f"clamp({term} + {self.scale:g} * action, -1, 1) times the drone's maximum speed per "
+            "axis",
             "guidance": {**self._law_card(), "scale": self.scale},
         }
 
@@ -542,6 +546,7 @@ class RouteLawAction(GuidedVelocityAction):
 
     name = "route_law"
     reads_route = True  # the env passes the meeting point with the guidance
+    corrects = ("the route-intercept law", "law")
 
     def __init__(
         self,
@@ -574,15 +579,6 @@ class RouteLawAction(GuidedVelocityAction):
         aim, due, reachable = meeting
         speed = max_speed.unsqueeze(-1)
         return route_law(homing, aim, due, reachable, speed, self.gain, self.homing_time)
-
-    def card(self) -> dict[str, Any]:
-        return {
-            "features": ["dv_cmd.x", "dv_cmd.y", "dv_cmd.z"],
-            "unit": "1: a correction to the route-intercept law; the velocity command is "
-            f"clamp(law + {self.scale:g} * action, -1, 1) times the drone's maximum speed per "
-            "axis",
-            "guidance": {**self._law_card(), "scale": self.scale},
-        }
 
     def _law_card(self) -> dict[str, Any]:
         return {
