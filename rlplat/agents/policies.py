@@ -32,15 +32,13 @@ from torchrl.data import Bounded
 from rlplat.agents.checkpoint import actor_from_state, load_checkpoint, saved_interface
 from rlplat.envs.components import OBSERVATIONS, DroneView
 from rlplat.envs.kinematics import (
-    ROUTE_LAG,
     aim_velocity,
     follow_route,
     gather_drones,
     intercept_action,
     nearest,
-    route_ahead,
-    route_intercept,
     route_law,
+    route_meeting,
     route_times,
     targets,
 )
@@ -228,10 +226,9 @@ class RouteIntercept(ProportionalNavigation):
         v_other = gather_drones(velocities[:, self.others], near)
         homing = intercept_action(rel, v_other, speed, self.gain, self.lead, self.max_lead_time)
         routes = self.routes[self.scenario_routes[scenario_index.reshape(-1).long()]]
-        other_speed = gather_drones(max_speed[:, self.others], near)
-        aim, due, reachable = route_intercept(
-            own, speed.squeeze(-1), other, route_ahead(routes, waypoint, near), other_speed,
-            times=self.times, lag=ROUTE_LAG, reach=self.capture_radius,
+        aim, due, reachable = route_meeting(
+            own, speed.squeeze(-1), positions[:, self.others], max_speed[:, self.others],
+            routes, waypoint, near, times=self.times, reach=self.capture_radius,
         )  # fmt: skip
         action = route_law(homing, aim - own, due, reachable, speed, self.gain, self.homing_time)
         return self._action(action)

@@ -173,6 +173,28 @@ def route_intercept(
 ROUTE_LAG, ROUTE_RESOLUTION = 0.0, 0.25
 
 
+def route_meeting(
+    own: Tensor,
+    own_speed: Tensor,
+    defenders: Tensor,
+    defender_speed: Tensor,
+    routes: Tensor,
+    waypoint: Tensor,
+    index: Tensor,
+    *,
+    times: Tensor,
+    reach: float,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`route_intercept` of K pursuers (own (N, K, 3), own_speed (N, K)) with the chosen
+    defenders (``index`` (N, K) into defenders (N, m, 3), defender_speed (N, m), routes
+    (N, m, S, 3), waypoint (N, m)), at the law's start-up lag ``ROUTE_LAG``."""
+    ahead = route_ahead(routes, waypoint, index)
+    other, other_speed = gather_drones(defenders, index), gather_drones(defender_speed, index)
+    return route_intercept(
+        own, own_speed, other, ahead, other_speed, times=times, lag=ROUTE_LAG, reach=reach
+    )
+
+
 def route_times(time_limit: float, device=None) -> Tensor:
     """The instants (T,) s the route-intercept law tries, up to ``time_limit``."""
     steps = max(1, round(time_limit / ROUTE_RESOLUTION))

@@ -15,13 +15,11 @@ from torchrl.envs import EnvBase
 
 from rlplat.envs.components import DroneView, Reward, RewardContext, inside_ellipsoid
 from rlplat.envs.kinematics import (
-    ROUTE_LAG,
     follow_route,
     gather_drones,
     nearest,
     pure_pursuit,
-    route_ahead,
-    route_intercept,
+    route_meeting,
     route_times,
     targets,
 )
@@ -554,14 +552,12 @@ class PursuitEnv(EnvBase):
         (N, k) s and whether the attacker can be there by then (N, k) bool
         (:func:`rlplat.envs.kinematics.route_intercept`, the route flown as a ``setpoints``
         defender flies it)."""
-        own, defenders = p[:, self.attackers], p[:, self.defenders]
+        own, defenders, speed = p[:, self.attackers], p[:, self.defenders], self.max_speed
         near = nearest(own, defenders, targets(self.caught))
-        ahead = route_ahead(self.routes[self.route], self.waypoint, near)  # (N, k, S, 3)
-        speed = self.max_speed
-        return route_intercept(
-            own, speed[:, self.attackers], gather_drones(defenders, near), ahead,
-            gather_drones(speed[:, self.defenders], near), times=self._route_times,
-            lag=ROUTE_LAG, reach=self.capture_radius,
+        return route_meeting(
+            own, speed[:, self.attackers], defenders, speed[:, self.defenders],
+            self.routes[self.route], self.waypoint, near, times=self._route_times,
+            reach=self.capture_radius,
         )  # fmt: skip
 
     def _relative(self, p: Tensor) -> Tensor:
