@@ -32,6 +32,7 @@ from torchrl.data import Bounded
 from rlplat.agents.checkpoint import actor_from_state, load_checkpoint, saved_interface
 from rlplat.envs.components import OBSERVATIONS, DroneView
 from rlplat.envs.kinematics import (
+    SetpointFlight,
     aim_velocity,
     follow_route,
     gather_drones,
@@ -40,6 +41,7 @@ from rlplat.envs.kinematics import (
     route_law,
     route_meeting,
     route_times,
+    setpoint_flight,
     targets,
 )
 from rlplat.envs.pursuit import ROLES, PursuitEnv
@@ -187,6 +189,8 @@ class RouteIntercept(ProportionalNavigation):
         routes: (R, S, 3) m, the scenario set's routes. scenario_routes: (E, m) int64, each
             defender's route in every scenario of the split (``scenario_index`` rows).
         capture_radius: m, how close counts as a meeting. time_limit: s, the episode's.
+        flight: how the defenders fly their routes (the env's setpoint gain and acceptance
+            radius, :func:`~rlplat.envs.kinematics.setpoint_flight`; the default, without lags).
         homing_time: s, switch to proportional navigation when the meeting is this close.
         gain, lead, max_lead_time: as :class:`ProportionalNavigation`.
     """
@@ -200,6 +204,7 @@ class RouteIntercept(ProportionalNavigation):
         scenario_routes: Tensor,
         capture_radius: float,
         time_limit: float,
+        flight: SetpointFlight | None = None,
         homing_time: float = 2.0,
         **pn: Any,
     ) -> None:
@@ -210,6 +215,7 @@ class RouteIntercept(ProportionalNavigation):
         self.register_buffer("scenario_routes", scenario_routes.long())
         self.register_buffer("times", route_times(time_limit))
         self.capture_radius, self.homing_time = float(capture_radius), float(homing_time)
+        self.flight = SetpointFlight() if flight is None else flight
 
     def forward(
         self,
@@ -227,8 +233,9 @@ class RouteIntercept(ProportionalNavigation):
         homing = intercept_action(rel, v_other, speed, self.gain, self.lead, self.max_lead_time)
         routes = self.routes[self.scenario_routes[scenario_index.reshape(-1).long()]]
         aim, due, reachable = route_meeting(
-            own, speed.squeeze(-1), positions[:, self.others], max_speed[:, self.others],
-            routes, waypoint, near, times=self.times, reach=self.capture_radius,
+            own, speed.squeeze(-1), positions[:, self.others], velocities[:, self.others],
+            max_speed[:, self.others], routes, waypoint, near, times=self.times,
+            reach=self.capture_radius, flight=self.flight,
         )  # fmt: skip
         action = route_law(homing, aim - own, due, reachable, speed, self.gain, self.homing_time)
         return self._action(action)
@@ -277,6 +284,7 @@ def _known_routes(env: PursuitEnv) -> dict[str, Any]:
         "scenario_routes": env.scenarios["route"],
         "capture_radius": env.capture_radius,
         "time_limit": env.max_steps * env.control_period,
+        "flight": setpoint_flight(env.setpoint_gain, env.setpoint_acceptance),
     }
 
 

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
 import torch
 from torch import Tensor
 
@@ -73,12 +76,61 @@ def intercept_action(
     return (gain * aim / max_speed).clamp(-1.0, 1.0)
 
 
-def route_path(position: Tensor, route: Tensor, max_speed: Tensor, times: Tensor) -> Tensor:
+@dataclass(frozen=True)
+class SetpointFlight:
+    """How a ``setpoints`` drone flies from one setpoint to the next, as :func:`route_path`
+    models it. The defaults are no lags at all: full speed until the setpoint is reached.
+
+    Attributes:
+        lag: s, the velocity time constant: each leg starts this late (the first one less the
+            part of its speed the drone already flies along it).
+        gain: 1/s, the command per metre to the setpoint: within ``max_speed / gain`` of it
+            the drone slows down in proportion (an exponential approach).
+        acceptance: m, the drone moves on within this distance of its setpoint.
+    """
+
+    lag: float = 0.0
+    gain: float = math.inf
+    acceptance: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not self.lag >= 0:
+            raise ValueError(f"SetpointFlight.lag: must be >= 0, got {self.lag}")
+        if not self.gain > 0:
+            raise ValueError(f"SetpointFlight.gain: must be > 0, got {self.gain}")
+        if math.isfinite(self.gain) and not self.acceptance > 0:
+            raise ValueError(
+                f"SetpointFlight.acceptance: must be > 0 with a finite gain, got {self.acceptance}"
+            )
+
+    def approach(self, distance: Tensor, speed: Tensor) -> Tensor:
+        """The time (s) the proportional approach adds to a leg of ``distance`` (m, largest
+        per axis) over flying it at full ``speed`` (m/s): from ``speed / gain`` on, the distance
+        to go falls as exp(-gain t) until it is ``acceptance``."""
+        if not math.isfinite(self.gain):
+            return torch.zeros_like(distance)
+        near = (speed / self.gain).clamp_min(self.acceptance)  # where the command stops saturating
+        slow = torch.log(torch.minimum(distance, near).clamp_min(self.acceptance) / self.acceptance)
+        fast = (distance - near).clamp_min(0) / speed
+        return (fast + slow / self.gain - distance / speed).clamp_min(0)
+
+
+def route_path(
+    position: Tensor,
+    route: Tensor,
+    max_speed: Tensor,
+    times: Tensor,
+    *,
+    velocity: Tensor | None = None,
+    flight: SetpointFlight = SetpointFlight(),
+) -> Tensor:
     """Where a drone that flies ``route`` from ``position`` at full speed per axis will be.
 
-    The model of the ``setpoints`` strategy without its lags: from each setpoint to the next,
-    every axis moves at the maximum speed until it is there (speed limits are per axis, so a
-    short axis arrives first), and the drone moves on when the last axis arrives.
+    The model of the ``setpoints`` strategy: from each setpoint to the next, every axis moves at
+    the maximum speed until it is there (speed limits are per axis, so a short axis arrives
+    first), and the drone moves on when the last axis arrives. ``flight`` adds its lags: each
+    leg starts ``flight.lag`` late and ends with the proportional approach's extra time, held
+    at the setpoint (with the defaults, none).
 
     Args:
         position: (*B, 3) m, the drone now.
@@ -86,18 +138,29 @@ def route_path(position: Tensor, route: Tensor, max_speed: Tensor, times: Tensor
             repeats its last setpoint: the drone holds there).
         max_speed: (*B,) m/s per axis.
         times: (T,) s from now, increasing.
+        velocity: (*B, 3) m/s, the drone's now (None: at rest); what it already flies along
+            its first leg shortens that leg's lag.
+        flight: how it flies a leg.
 
     Returns:
         (*B, T, 3) m, the drone's position at each time.
     """
     points = torch.cat([position.unsqueeze(-2), route], -2)  # (*B, S + 1, 3)
     step = points.diff(dim=-2)  # (*B, S, 3)
-    speed = max_speed.clamp_min(1e-6).unsqueeze(-1)
-    arrive = (step.abs().amax(-1) / speed).cumsum(-1)  # (*B, S) s, at each setpoint
+    speed = max_speed.clamp_min(1e-6).unsqueeze(-1)  # (*B, 1)
+    distance = step.abs().amax(-1)  # (*B, S) m, the longest axis of each leg
+    lag = torch.where(distance > 0, flight.lag, 0.0)  # a repeated setpoint is no leg
+    if velocity is not None and flight.lag > 0:
+        first = step[..., 0, :]
+        axis = first.abs().argmax(-1, keepdim=True)
+        along = (velocity.gather(-1, axis) * first.gather(-1, axis).sign()).squeeze(-1)
+        lag = torch.cat([lag[..., :1] * (1 - along / speed.squeeze(-1)).clamp(0, 1).unsqueeze(-1),
+                         lag[..., 1:]], -1)  # fmt: skip
+    arrive = (lag + distance / speed + flight.approach(distance, speed)).cumsum(-1)  # (*B, S) s
     t = times.to(position).expand(*arrive.shape[:-1], times.shape[0]).contiguous()
     leg = torch.searchsorted(arrive.contiguous(), t, right=True)  # (*B, T): the leg flown
     leg = leg.clamp(max=step.shape[-2] - 1)
-    start = torch.cat([torch.zeros_like(arrive[..., :1]), arrive[..., :-1]], -1)
+    start = torch.cat([torch.zeros_like(arrive[..., :1]), arrive[..., :-1]], -1) + lag
     index = leg.unsqueeze(-1).expand(*leg.shape, 3)
     origin, move = points.gather(-2, index), step.gather(-2, index)  # (*B, T, 3)
     flown = (t - start.gather(-1, leg)).clamp_min(0).unsqueeze(-1) * speed.unsqueeze(-1)
@@ -131,6 +194,8 @@ def route_intercept(
     lag: float,
     reach: float,
     time_left: Tensor | None = None,
+    other_velocity: Tensor | None = None,
+    flight: SetpointFlight = SetpointFlight(),
 ) -> tuple[Tensor, Tensor, Tensor]:
     """The earliest point of a route-flying drone's path that a pursuer can reach in time.
 
@@ -148,12 +213,14 @@ def route_intercept(
         lag: s, the pursuer's start-up lag. reach: m, how close counts (the capture radius).
         time_left: (*B,) s, the time until the episode ends (None: no limit before the last
             time).
+        other_velocity, flight: the target's velocity and how it flies (as
+            :func:`route_path`).
 
     Returns:
         The point (*B, 3) m, the time the target is there (*B,) s and whether the pursuer can
         be there by then (*B,) bool.
     """
-    path = route_path(other, route, other_speed, times)  # (*B, T, 3)
+    path = route_path(other, route, other_speed, times, velocity=other_velocity, flight=flight)
     gap = (path - own.unsqueeze(-2)).abs().amax(-1)  # (*B, T)
     t = times.to(own)
     reachable = gap <= own_speed.unsqueeze(-1) * (t - lag).clamp_min(0) + reach
@@ -171,12 +238,22 @@ def route_intercept(
 #: The route-intercept law's prediction: the pursuer's start-up lag (s) and the instants tried
 #: (every ROUTE_RESOLUTION s up to the episode's time limit).
 ROUTE_LAG, ROUTE_RESOLUTION = 0.0, 0.25
+#: s, the defender's velocity time constant the law assumes (the embedded velocity dynamics'
+#: horizontal one, ``dynamics=velocity`` ``tau_xy``).
+ROUTE_TAU = 0.9
+
+
+def setpoint_flight(gain: float, acceptance: float) -> SetpointFlight:
+    """How the law expects a ``setpoints`` defender to fly: the env's setpoint ``gain`` (1/s)
+    and ``acceptance`` radius (m), and the velocity lag ``ROUTE_TAU``."""
+    return SetpointFlight(ROUTE_TAU, gain, acceptance)
 
 
 def route_meeting(
     own: Tensor,
     own_speed: Tensor,
     defenders: Tensor,
+    defender_velocity: Tensor,
     defender_speed: Tensor,
     routes: Tensor,
     waypoint: Tensor,
@@ -184,15 +261,18 @@ def route_meeting(
     *,
     times: Tensor,
     reach: float,
+    flight: SetpointFlight,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`route_intercept` of K pursuers (own (N, K, 3), own_speed (N, K)) with the chosen
-    defenders (``index`` (N, K) into defenders (N, m, 3), defender_speed (N, m), routes
-    (N, m, S, 3), waypoint (N, m)), at the law's start-up lag ``ROUTE_LAG``."""
+    defenders (``index`` (N, K) into defenders (N, m, 3), defender_velocity (N, m, 3),
+    defender_speed (N, m), routes (N, m, S, 3), waypoint (N, m)) flying as ``flight``, at the
+    law's start-up lag ``ROUTE_LAG``."""
     ahead = route_ahead(routes, waypoint, index)
     other, other_speed = gather_drones(defenders, index), gather_drones(defender_speed, index)
     return route_intercept(
-        own, own_speed, other, ahead, other_speed, times=times, lag=ROUTE_LAG, reach=reach
-    )
+        own, own_speed, other, ahead, other_speed, times=times, lag=ROUTE_LAG, reach=reach,
+        other_velocity=gather_drones(defender_velocity, index), flight=flight,
+    )  # fmt: skip
 
 
 def route_times(time_limit: float, device=None) -> Tensor:

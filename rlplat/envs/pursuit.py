@@ -21,6 +21,7 @@ from rlplat.envs.kinematics import (
     pure_pursuit,
     route_meeting,
     route_times,
+    setpoint_flight,
     targets,
 )
 from rlplat.errors import ConfigError
@@ -542,22 +543,23 @@ class PursuitEnv(EnvBase):
         speed = self.max_speed[:, self.attackers]
         if not self._meets:
             return self.action_fn.guidance(rel, v_other, speed, a_other)
-        aim, due, reachable = self.meeting(p) if meeting is None else meeting
+        aim, due, reachable = self.meeting(p, v) if meeting is None else meeting
         meeting = (aim - own, due, reachable)
         return self.action_fn.guidance(rel, v_other, speed, a_other, meeting=meeting)
 
-    def meeting(self, p: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def meeting(self, p: Tensor, v: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Where each attacker can meet its nearest defender in play on that defender's route,
-        from positions p (N, k + m, 3): the point (N, k, 3) m, when the defender is there
-        (N, k) s and whether the attacker can be there by then (N, k) bool
+        from positions p and velocities v (N, k + m, 3): the point (N, k, 3) m, when the
+        defender is there (N, k) s and whether the attacker can be there by then (N, k) bool
         (:func:`rlplat.envs.kinematics.route_intercept`, the route flown as a ``setpoints``
-        defender flies it)."""
+        defender flies it, with this env's setpoint gain and acceptance radius)."""
         own, defenders, speed = p[:, self.attackers], p[:, self.defenders], self.max_speed
         near = nearest(own, defenders, targets(self.caught))
         return route_meeting(
-            own, speed[:, self.attackers], defenders, speed[:, self.defenders],
-            self.routes[self.route], self.waypoint, near, times=self._route_times,
-            reach=self.capture_radius,
+            own, speed[:, self.attackers], defenders, v[:, self.defenders],
+            speed[:, self.defenders], self.routes[self.route], self.waypoint, near,
+            times=self._route_times, reach=self.capture_radius,
+            flight=setpoint_flight(self.setpoint_gain, self.setpoint_acceptance),
         )  # fmt: skip
 
     def _relative(self, p: Tensor) -> Tensor:
@@ -638,7 +640,7 @@ class PursuitEnv(EnvBase):
         if self.obs_fn.route_ahead:  # an observation that reads the route ahead
             view = replace(view, next_setpoint=route_view(self._setpoint(1)))
         # The meeting point of this state: the observation's, and the next step's guidance.
-        self._meeting = self.meeting(p) if self._meets or self.obs_fn.reads_intercept else None
+        self._meeting = self.meeting(p, v) if self._meets or self.obs_fn.reads_intercept else None
         if self.obs_fn.reads_intercept:  # an observation that reads the meeting point
             aim, due, _ = self._meeting
             view = replace(view, intercept=aim, intercept_time=due)
