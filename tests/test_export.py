@@ -308,20 +308,24 @@ def _spec():
 
 
 @pytest.mark.parametrize(
-    "drone,action_name,unit,header",
+    "drone,action_name,unit,header,obs_dim",
     [
         ("attacker_v4", "guided_velocity", "a correction to proportional navigation",
-         "CORRECTION to proportional navigation"),
+         "CORRECTION to proportional navigation", 10),
         ("attacker_v5", "guidance_law", "the parameters of proportional navigation",
-         "SETS proportional navigation's parameters"),
+         "SETS proportional navigation's parameters", 10),
+        ("attacker_v10", "route_law", "a correction to the route-intercept law",
+         "CORRECTION to the route-intercept law", 20),
     ],
 )  # fmt: skip
 def test_a_guided_controller_exports_with_its_guidance(
-    scenarios, tmp_path, short_run, drone, action_name, unit, header
+    scenarios, tmp_path, short_run, drone, action_name, unit, header, obs_dim
 ):
     # attacker_v4 learns a correction to proportional navigation, attacker_v5 the law's
-    # parameters: the artifacts compute the action, the card and header say what the env makes
-    # of it, and the C controller flies the evaluation with the torch outcomes.
+    # parameters, attacker_v10 a correction to the route-intercept law: the artifacts compute
+    # the action, the card and header say what the env makes of it (for v10, also the path
+    # model its meeting point assumes), and the C controller flies the evaluation with the
+    # torch outcomes.
     run = short_run(scenarios, tmp_path / "run", f"drone={drone}")
     export_run(run, ckpt="last", **QUICK)
     out = run / "export" / "last"
@@ -329,7 +333,11 @@ def test_a_guided_controller_exports_with_its_guidance(
     action = card["interface"]["action"]
     assert action["name"] == action_name and action["guidance"]["lead"] == 0.5
     assert unit in action["unit"]
-    assert card["interface"]["observation"]["dim"] == 10
+    assert card["interface"]["observation"]["dim"] == obs_dim
+    path = card["interface"].get("route_path")
+    assert (path is not None) == (action_name == "route_law")
+    if path is not None:
+        assert path["lag"] == 0.9 and path["gain"] == 1.0 and path["acceptance"] == 1.0
     assert header in (out / "policy.h").read_text()
     # Next to the declaration too: the action is not the velocity command.
     assert "action: in [-1, 1]; not the velocity command itself" in (out / "policy.h").read_text()

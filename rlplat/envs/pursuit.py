@@ -272,6 +272,10 @@ class PursuitEnv(EnvBase):
         self.terminate_out_of_view = bool(terminate_out_of_view)
         self.setpoint_acceptance = float(setpoint_acceptance)
         self.setpoint_gain, self.pursuit_gain = float(setpoint_gain), float(pursuit_gain)
+        #: How :meth:`meeting` expects a route-flying defender to fly; ``meets``: whether the
+        #: action or the observation reads the meeting point.
+        self.route_flight = setpoint_flight(self.setpoint_gain, self.setpoint_acceptance)
+        self.meets = meets
         self.sampler = ScenarioSampler(
             len(self.scenarios), scenario_order, self.device, scenario_share
         )
@@ -559,7 +563,7 @@ class PursuitEnv(EnvBase):
             own, speed[:, self.attackers], defenders, v[:, self.defenders],
             speed[:, self.defenders], self.routes[self.route], self.waypoint, near,
             times=self._route_times, reach=self.capture_radius,
-            flight=setpoint_flight(self.setpoint_gain, self.setpoint_acceptance),
+            flight=self.route_flight,
         )  # fmt: skip
 
     def _relative(self, p: Tensor) -> Tensor:
