@@ -62,6 +62,8 @@ SHARED = (
     "setpoint_acceptance",
     "setpoint_gain",
     "pursuit_gain",
+    "route_flight",
+    "computes_meeting",
     "defender_network",
     "drone_action_spec",
 )

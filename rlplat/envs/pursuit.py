@@ -272,10 +272,10 @@ class PursuitEnv(EnvBase):
         self.terminate_out_of_view = bool(terminate_out_of_view)
         self.setpoint_acceptance = float(setpoint_acceptance)
         self.setpoint_gain, self.pursuit_gain = float(setpoint_gain), float(pursuit_gain)
-        #: How :meth:`meeting` expects a route-flying defender to fly; ``meets``: whether the
-        #: action or the observation reads the meeting point.
+        #: How :meth:`meeting` expects a route-flying defender to fly, and whether every step
+        #: computes the meeting point (the action or the observation reads it).
         self.route_flight = setpoint_flight(self.setpoint_gain, self.setpoint_acceptance)
-        self.meets = meets
+        self.computes_meeting = meets
         self.sampler = ScenarioSampler(
             len(self.scenarios), scenario_order, self.device, scenario_share
         )
@@ -644,7 +644,7 @@ class PursuitEnv(EnvBase):
         if self.obs_fn.route_ahead:  # an observation that reads the route ahead
             view = replace(view, next_setpoint=route_view(self._setpoint(1)))
         # The meeting point of this state: the observation's, and the next step's guidance.
-        self._meeting = self.meeting(p, v) if self._meets or self.obs_fn.reads_intercept else None
+        self._meeting = self.meeting(p, v) if self.computes_meeting else None
         if self.obs_fn.reads_intercept:  # an observation that reads the meeting point
             aim, due, _ = self._meeting
             view = replace(view, intercept=aim, intercept_time=due)

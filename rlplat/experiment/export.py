@@ -258,7 +258,7 @@ def interface_card(src: Source, env, actor: DeterministicActor, features) -> dic
     if getattr(env.action_fn, "guided", False):
         card = env.action_fn.card()
         action.update(card, features=card["features"][: actor.action_dim])
-    card = {
+    interface = {
         "observation": {"name": src.cfg.observation.name, "dim": actor.obs_dim,
                         "features": features},
         "action": action,
@@ -266,12 +266,12 @@ def interface_card(src: Source, env, actor: DeterministicActor, features) -> dic
                  "drones_sharing_the_policy": env.team_size},
         "c_api": C_API,
     }  # fmt: skip
-    if env.meets:  # the meeting point the caller computes, and the defender's path it assumes
-        card["route_path"] = {
+    if env.computes_meeting:  # the meeting point the caller computes, from this path
+        interface["route_path"] = {
             "model": "rlplat.envs.kinematics.route_path (velocity lag, setpoint gain, acceptance)",
             **asdict(env.route_flight),
         }
-    return card
+    return interface
 
 
 def measure_timing(header, source, onnx_policy, obs: np.ndarray, calls: int, compiler: str):
