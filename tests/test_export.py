@@ -343,6 +343,13 @@ def test_a_guided_controller_exports_with_its_guidance(
     assert "action: in [-1, 1]; not the velocity command itself" in (out / "policy.h").read_text()
     ev = evaluate_run(run, policy="c", ckpt="last", plots=False)
     assert ev.summary["outcomes_differing_from_torch"] == 0
+    if path is not None:  # a checkpoint trained on another route path is refused
+        ckpt = run / "checkpoints" / "last.pt"
+        state = torch.load(ckpt, weights_only=False)
+        state["interface"]["route_path"]["lag"] = 0.0
+        torch.save(state, ckpt)
+        with pytest.raises(ConfigError, match=r"trained with the defender's route path .*'lag': 0"):
+            evaluate_run(run, ckpt="last", plots=False)
 
 
 def test_implementations_that_differ_fail_the_export_and_write_nothing(run, tmp_path):

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import io
+import logging
 import random
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +17,8 @@ from rlplat.errors import ConfigError
 from rlplat.io import atomic_write_bytes
 
 FORMAT_VERSION = 1
+
+log = logging.getLogger(__name__)
 
 
 def rng_state() -> dict[str, Any]:
@@ -53,6 +57,28 @@ def saved_interface(state: dict[str, Any]) -> dict[str, Any]:
     """The drone interface a checkpoint was trained with; one written before teams existed
     flew 1 attacker against 1 defender."""
     return {"attackers": 1, "defenders": 1, **state.get("interface", {})}
+
+
+def route_path_interface(env) -> dict[str, float] | None:
+    """The defender's path an env's meeting point assumes (None: it computes none)."""
+    return asdict(env.route_flight) if env.computes_meeting else None
+
+
+def check_route_path(state: dict[str, Any], env, path, where: str) -> None:
+    """Refuse a checkpoint trained on another route path than the env's meeting point uses;
+    one that saved none (written before checkpoints recorded it) is flown with a warning."""
+    now = route_path_interface(env)
+    if now is None:
+        return
+    saved = saved_interface(state).get("route_path")
+    if saved is None:
+        log.warning("%s: %s saved no route path; its meeting point is flown with %s, which may "
+                    "not be the one it was trained with", where, path, now)  # fmt: skip
+    elif saved != now:
+        raise ConfigError(
+            f"{where}: {path} was trained with the defender's route path {saved}, this env's "
+            f"meeting point uses {now}"
+        )
 
 
 def check_compatible(state: dict[str, Any], net: NetSpec, interface: dict[str, Any], path) -> None:

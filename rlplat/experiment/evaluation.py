@@ -23,7 +23,12 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from rlplat.agents.checkpoint import actor_from_state, load_checkpoint, saved_interface
+from rlplat.agents.checkpoint import (
+    actor_from_state,
+    check_route_path,
+    load_checkpoint,
+    saved_interface,
+)
 from rlplat.agents.export import ARTIFACTS, observation_key
 from rlplat.agents.native import OnnxPolicy, artifact_module, build_library, find_compiler
 from rlplat.agents.policies import POLICIES, MeanAction, make_scripted_policy, policies_for
@@ -134,8 +139,11 @@ def artifact_policy(policy: str, files: dict[str, bytes], state, env: PursuitEnv
 
 def check_policy_fits(state: dict[str, Any], cfg: DictConfig, env: PursuitEnv, path) -> None:
     """Refuse a checkpoint whose team sizes, network sizes or drone interface differ from the
-    env it would fly in (the run's config, on the scenarios and attackers asked for)."""
+    env it would fly in (the run's config, on the scenarios and attackers asked for), or
+    that was trained on another defender's route path than the env's meeting point uses."""
+    check_route_path(state, env, path, "ckpt")
     interface = saved_interface(state)
+    interface.pop("route_path", None)
     for key, value in (("attackers", env.num_attackers), ("defenders", env.num_defenders)):
         saved = interface.pop(key)
         if saved != value:

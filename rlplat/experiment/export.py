@@ -268,7 +268,8 @@ def interface_card(src: Source, env, actor: DeterministicActor, features) -> dic
     }  # fmt: skip
     if env.computes_meeting:  # the meeting point the caller computes, from this path
         interface["route_path"] = {
-            "model": "rlplat.envs.kinematics.route_path (velocity lag, setpoint gain, acceptance)",
+            "model": "rlplat.envs.kinematics.route_path (velocity lag, setpoint gain, acceptance), "
+            "from the defender's position, velocity, maximum speed and route ahead",
             **asdict(env.route_flight),
         }
     return interface

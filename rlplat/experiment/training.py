@@ -31,6 +31,7 @@ from rlplat.agents.checkpoint import (
     check_compatible,
     load_checkpoint,
     rng_state,
+    route_path_interface,
     save_checkpoint,
     set_rng_state,
 )
@@ -262,14 +263,18 @@ def load_resume_state(run_dir: Path, config: dict[str, Any]) -> dict[str, Any]:
 
 def make_interface(cfg: DictConfig, env: PursuitEnv) -> dict[str, Any]:
     """The drone interface a checkpoint is bound to: the learner, its observation and action,
-    and how many drones of each role flew (what the observation's blocks are)."""
-    return {
+    how many drones of each role flew (what the observation's blocks are) and, where the env
+    computes the meeting point, the defender's path it assumes."""
+    interface = {
         "drone.learner": cfg.drone.learner,
         "observation.name": cfg.observation.name,
         "action.name": cfg.action.name,
         "attackers": env.num_attackers,
         "defenders": env.num_defenders,
     }
+    if env.computes_meeting:
+        interface["route_path"] = route_path_interface(env)
+    return interface
 
 
 def make_train_env(env: PursuitEnv) -> TransformedEnv:
