@@ -41,7 +41,6 @@ from rlplat.envs.kinematics import (
     route_law,
     route_meeting,
     route_times,
-    setpoint_flight,
     targets,
 )
 from rlplat.envs.pursuit import ROLES, PursuitEnv
@@ -284,7 +283,7 @@ def _known_routes(env: PursuitEnv) -> dict[str, Any]:
         "scenario_routes": env.scenarios["route"],
         "capture_radius": env.capture_radius,
         "time_limit": env.max_steps * env.control_period,
-        "flight": setpoint_flight(env.setpoint_gain, env.setpoint_acceptance),
+        "flight": env.route_flight,
     }
 
 

@@ -27,7 +27,7 @@ import logging
 import os
 import platform
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from importlib.metadata import version
 from pathlib import Path
 from typing import Any
@@ -39,7 +39,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from rlplat.agents.checkpoint import actor_from_state, load_checkpoint
+from rlplat.agents.checkpoint import actor_from_state, load_checkpoint, route_path_interface
 from rlplat.agents.export import (
     C_API,
     VELOCITY_ACTION,
@@ -266,11 +266,12 @@ def interface_card(src: Source, env, actor: DeterministicActor, features) -> dic
                  "drones_sharing_the_policy": env.team_size},
         "c_api": C_API,
     }  # fmt: skip
-    if env.computes_meeting:  # the meeting point the caller computes, from this path
+    path = route_path_interface(env)
+    if path is not None:  # the meeting point the caller computes, from this path
         interface["route_path"] = {
             "model": "rlplat.envs.kinematics.route_path (velocity lag, setpoint gain, acceptance), "
             "from the defender's position, velocity, maximum speed and route ahead",
-            **asdict(env.route_flight),
+            **path,
         }
     return interface
 
