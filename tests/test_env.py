@@ -54,8 +54,8 @@ def test_registries_match_config_groups():
     for stem in stems("action") - set(ACTIONS):
         raw = OmegaConf.load(CONF / "action" / f"{stem}.yaml")
         assert "name" not in raw and raw.defaults[0] == names[stem], stem
-    for s in stems("reward"):
-        cfg = OmegaConf.load(CONF / "reward" / f"{s}.yaml")
+    for s in stems("reward"):  # composed: a reward file may derive from another
+        cfg = compose_config("train", [f"reward={s}"]).reward
         Reward(**cfg)  # every term known, every key a constructor argument
         assert set(cfg.terms) <= set(REWARD_TERMS)
     assert stems("drone") == {
@@ -69,6 +69,7 @@ def test_registries_match_config_groups():
         "attacker_v8",
         "attacker_v9",
         "attacker_v10",
+        "attacker_v11",
         "defender_v1",
     }
 
@@ -85,13 +86,15 @@ def test_registries_match_config_groups():
         ("attacker_v8", 10),
         ("attacker_v9", 16),
         ("attacker_v10", 20),
+        ("attacker_v11", 24),
     ],
 )
 def test_drone_bundles_pick_their_observation_and_cli_wins(scenarios, drone, dim):
     env = make_env(f"drone={drone}", scenarios=scenarios.path, num_envs=2)
     assert env.observation_spec["observation"].shape == (2, dim)
-    shaped = OmegaConf.load(CONF / "reward" / "shaped.yaml").terms
-    assert set(env.reward_fn.weights) == set(shaped)  # eq. 3's terms by default
+    shaped = set(OmegaConf.load(CONF / "reward" / "shaped.yaml").terms)
+    extra = {"attacker_v11": {"action_sq"}}.get(drone, set())  # a price on the correction
+    assert set(env.reward_fn.weights) == shaped | extra  # eq. 3's terms by default
     env = make_env(f"drone={drone}", "reward=sparse", scenarios=scenarios.path)
     assert set(env.reward_fn.weights) == {"capture", "out_of_view", "ground_contact"}
 
@@ -142,6 +145,18 @@ def test_shaped_reward_is_paper_eq3():
     total, _ = Reward(**sparse_cfg)(RewardContext(d, visible, captured, grounded, 60.0))
     expected = [10.0, 0.0, 0.0, -1.0, 0.0, sparse_cfg.terms.ground_contact]
     assert total.tolist() == pytest.approx(expected)
+
+
+def test_action_sq_prices_the_size_of_the_action(scenarios):
+    env = make_env("drone=attacker_v10", "+reward.terms.action_sq=-0.5", scenarios=scenarios.path,
+                   num_envs=3)  # fmt: skip
+    td = env.reset()
+    action = torch.tensor([[0.0, 0.0, 0.0], [1.0, -1.0, 1.0], [0.6, 0.0, -0.3]])
+    out = env.step(td.set("action", action))["next"]
+    expected = -0.5 * torch.tensor([0.0, 1.0, (0.36 + 0.09) / 3]).unsqueeze(-1)
+    torch.testing.assert_close(out["reward_terms", "action_sq"], expected)
+    terms = sum(out["reward_terms", k] for k in env.reward_fn.weights)
+    torch.testing.assert_close(out["reward"], terms)
 
 
 def test_shaped_strict_makes_losing_sight_the_worst_in_flight_step():

@@ -316,16 +316,19 @@ def _spec():
          "SETS proportional navigation's parameters", 10),
         ("attacker_v10", "route_law", "a correction to the route-intercept law",
          "CORRECTION to the route-intercept law", 20),
+        ("attacker_v11", "route_law", "a correction to the route-intercept law",
+         "CORRECTION to the route-intercept law", 24),
     ],
 )  # fmt: skip
 def test_a_guided_controller_exports_with_its_guidance(
     scenarios, tmp_path, short_run, drone, action_name, unit, header, obs_dim
 ):
     # attacker_v4 learns a correction to proportional navigation, attacker_v5 the law's
-    # parameters, attacker_v10 a correction to the route-intercept law: the artifacts compute
-    # the action, the card and header say what the env makes of it (for v10, also the path
-    # model its meeting point assumes), and the C controller flies the evaluation with the
-    # torch outcomes.
+    # parameters, attacker_v10 a correction to the route-intercept law (attacker_v11 seeing
+    # how the defender keeps its route): the artifacts compute the action, the card and header
+    # say what the env makes of it (for v10 and v11, also the path model its meeting point
+    # assumes; for v11 how the route features are computed), and the C controller flies the
+    # evaluation with the torch outcomes.
     run = short_run(scenarios, tmp_path / "run", f"drone={drone}")
     export_run(run, ckpt="last", **QUICK)
     out = run / "export" / "last"
@@ -338,6 +341,10 @@ def test_a_guided_controller_exports_with_its_guidance(
     assert (path is not None) == (action_name == "route_law")
     if path is not None:
         assert path["lag"] == 0.9 and path["gain"] == 1.0 and path["acceptance"] == 1.0
+    conformity = card["interface"].get("route_conformity")  # what the caller keeps per defender
+    assert (conformity is not None) == (obs_dim == 24)
+    if conformity is not None:
+        assert conformity["route_lag"] == [0.9, 0.9, 0.35] and conformity["control_period"] == 0.1
     assert header in (out / "policy.h").read_text()
     # Next to the declaration too: the action is not the velocity command.
     assert "action: in [-1, 1]; not the velocity command itself" in (out / "policy.h").read_text()

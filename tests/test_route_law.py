@@ -10,12 +10,19 @@ from torchrl.envs.utils import check_env_specs
 
 from rlplat import make_env
 from rlplat.agents.policies import make_scripted_policy
-from rlplat.envs.kinematics import SetpointFlight, route_intercept, route_path, setpoint_flight
+from rlplat.envs.kinematics import (
+    SetpointFlight,
+    follow_route,
+    route_intercept,
+    route_path,
+    setpoint_flight,
+)
 from rlplat.errors import ConfigError
 from rlplat.eval.episodes import evaluate
 
 PLAIN = "drone=attacker_v3"  # the plain velocity action
 V10 = "drone=attacker_v10"  # pursuit_intercept and route_law
+V11 = "drone=attacker_v11"  # attacker_v10 with pursuit_conform
 ROUTE_ONLY = "scenario.strategy_mix={setpoints: 1, nn: 0}"
 
 
@@ -220,7 +227,64 @@ def test_pursuit_intercept_adds_the_meeting_point_and_when_it_is_due(scenarios):
     check_env_specs(env)
 
 
-@pytest.mark.parametrize("option", ["action=route_law", "observation=pursuit_intercept"])
+def test_pursuit_conform_adds_how_the_defender_departs_from_its_route(scenarios):
+    env = make_env(V11, scenarios=scenarios, num_envs=8, split="val")
+    base = make_env(V10, scenarios=scenarios, num_envs=8, split="val")
+    td, ref = env.reset(), base.reset()
+    assert td["observation"].shape == (8, 24) and env.nn_defender.any() and ~env.nn_defender.all()
+    names = [f["name"] for f in env.obs_fn.features()[14:18]]
+    assert names == ["route_residual.x", "route_residual.y", "route_residual.z",
+                     "route_deviation"]  # fmt: skip
+    assert env.obs_fn.features()[17]["unit"] == "m/s^2"
+    lag, dt = torch.tensor([0.9, 0.9, 0.35]), env.control_period
+    blend = 1 - math.exp(-dt / 1.0)  # conformity_time
+    deviation = torch.zeros(8)
+    for _ in range(40):
+        obs = td["observation"]
+        torch.testing.assert_close(obs[:, [*range(14), *range(18, 24)]], ref["observation"])
+        p, v = td["positions"][:, 1], td["velocities"][:, 1]
+        follow = follow_route(p, td["setpoints"][:, 0], td["route_done"][:, 0],
+                              td["max_speed"][:, 1], env.setpoint_gain)  # fmt: skip
+        caught = td["caught"][:, 0]  # a defender caught before the step holds: no residual
+        action = torch.full((8, 3), 0.3)
+        td = env.step(td.set("action", action))["next"]
+        ref = base.step(ref.set("action", action))["next"]
+        # The measured acceleration less a first-order lag's mean over the control period.
+        residual = td["accelerations"][:, 1] - (follow - v) * (1 - torch.exp(-dt / lag)) / dt
+        residual[caught] = 0.0
+        deviation = deviation + blend * (residual.norm(dim=-1) - deviation)
+        torch.testing.assert_close(td["observation"][:, 14:17], residual)
+        torch.testing.assert_close(td["observation"][:, 17], deviation)
+    check_env_specs(env)
+
+
+def test_a_route_flyer_keeps_a_small_deviation_an_evader_does_not(tmp_path, write_small_set):
+    # Flown against the route-intercept law: a setpoints defender follows its command as the
+    # observation's lags predict it; the defender network leaves its route to evade.
+    median = {}
+    for kind, mix in (("route", "{setpoints: 1, nn: 0}"), ("nn", "{setpoints: 0, nn: 1}")):
+        scenarios = write_small_set(tmp_path / kind, f"scenario.strategy_mix={mix}")
+        env = make_env(V11, scenarios=scenarios, num_envs=16, split="val")
+        law, td, seen = make_scripted_policy("route_intercept", env), env.reset(), []
+        for step in range(150):
+            td = env.step(law(td))["next"]
+            playing = ~td["done"][:, 0] & ~td["caught"][:, 0]
+            if step >= 20:  # after the take-off
+                seen.append(td["observation"][playing, 17])
+        median[kind] = torch.cat(seen).median().item()
+    assert median["route"] < 0.5 < 1.5 < median["nn"], median
+
+
+def test_pursuit_conform_refuses_a_bad_route_lag(scenarios):
+    with pytest.raises(ConfigError, match="observation.route_lag"):
+        make_env(V11, "observation.route_lag=[0.9,0.9]", scenarios=scenarios, num_envs=2)
+    with pytest.raises(ConfigError, match="observation.conformity_time"):
+        make_env(V11, "observation.conformity_time=0", scenarios=scenarios, num_envs=2)
+
+
+@pytest.mark.parametrize(
+    "option", ["action=route_law", "observation=pursuit_intercept", "observation=pursuit_conform"]
+)
 def test_the_meeting_point_is_an_attackers(scenarios, option):
     with pytest.raises(ConfigError, match="attacker"):
         make_env("drone=defender_v1", option, scenarios=scenarios, num_envs=2)

@@ -6,7 +6,7 @@ by the drones of a team), M for the opponents a drone sees and K for its team-ma
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -44,6 +44,11 @@ class DroneView:
             (:func:`rlplat.envs.kinematics.route_intercept`; where none is reachable, the
             defender's position after the episode's time limit from now, and that time); None
             where no observation reads them.
+        route_residual, route_deviation: (*B, 3) m/s^2 and (*B,) m/s^2, how an attacker's
+            nearest defender in play departs from its route: its acceleration over the last
+            control period less the acceleration a ``setpoints`` defender in its state would
+            have had, and that residual's magnitude averaged over the last seconds
+            (:class:`PursuitConformObservation`); None where no observation reads them.
     """
 
     own_position: Tensor
@@ -62,6 +67,8 @@ class DroneView:
     mate_acceleration: Tensor | None = None
     intercept: Tensor | None = None
     intercept_time: Tensor | None = None
+    route_residual: Tensor | None = None
+    route_deviation: Tensor | None = None
 
 
 def inside_ellipsoid(rel: Tensor, semi_axes: Tensor) -> Tensor:
@@ -97,12 +104,13 @@ class _Observation:
             can leave play before the episode ends: more than one of them).
     """
 
-    own_layout: tuple[str, ...] = ()  # "p"/"v"/"w" per 3-vector, "s" per speed, "t" per time
+    own_layout: tuple[str, ...] = ()  # "p"/"v"/"w"/"a" per 3-vector, "s" speed, "t" time, "e" accel
     other_layout: tuple[str, ...] = ()  # "p", "v" or "a" per 3-vector of each other drone's block
     own_names: tuple[str, ...] = ()  # what each own 3-vector is (same order as own_layout)
     other_names: tuple[str, ...] = ()  # each other drone's, "{d}" standing for that drone
     route_ahead: bool = False  # reads the view's next_setpoint
     reads_intercept: bool = False  # reads the view's intercept and intercept_time
+    reads_conformity: bool = False  # reads the view's route_residual and route_deviation
 
     def __init__(
         self,
@@ -136,6 +144,7 @@ class _Observation:
             "w": [float(world_scale)] * 3,
             "s": [float(velocity_scale)],
             "t": [float(time_scale)],
+            "e": [float(accel_scale)],
             "f": [1.0],
         }
         self.scale = [x for kind in layout for x in per[kind]]
@@ -146,7 +155,7 @@ class _Observation:
         ``unit`` (``m``, ``m/s``, ``m/s^2``, ``s`` or ``1`` for an in-play flag) and ``scale``,
         in order."""
         kinds = {"p": ("m", 3), "w": ("m", 3), "v": ("m/s", 3), "a": ("m/s^2", 3),
-                 "s": ("m/s", 1), "t": ("s", 1), "f": ("1", 1)}  # fmt: skip
+                 "s": ("m/s", 1), "t": ("s", 1), "e": ("m/s^2", 1), "f": ("1", 1)}  # fmt: skip
         named = list(zip(self.own_names, self.own_layout, strict=True))
         others = [f"opponent{i}" for i in range(self.opponents)]
         others += [f"mate{j}" for j in range(self.mates)]
@@ -360,6 +369,58 @@ class PursuitInterceptObservation(PursuitRouteObservation):
         return [*super()._own(view), *meet]
 
 
+class PursuitConformObservation(PursuitInterceptObservation):
+    """``pursuit_intercept`` and whether the defender flies its route: how its acceleration
+    departs from a ``setpoints`` defender's.
+
+    s = [v_own, max_speed_own, setpoint - p_own, next_setpoint - p_own, intercept - p_own,
+    t_intercept, route_residual, route_deviation, p_other - p_own, v_other - v_own], (*B, 24)
+    with one opponent. The residual is the nearest defender's measured acceleration less the
+    one its route's setpoint follower would have given it (a first-order velocity lag of
+    ``route_lag`` seconds per axis x, y, z), near zero while it flies its route; the deviation
+    is the residual's size averaged over the last ``conformity_time`` seconds. A defender that
+    leaves its route to evade shows at once: the meeting point on its route is then no longer
+    where it will be, and a policy that sees it can tell the route flyers, which the law
+    meets, from the evaders. Attackers only.
+    """
+
+    own_layout = ("v", "s", "p", "p", "p", "t", "a", "e")
+    own_names = ("v_own", "max_speed_own", "setpoint - p_own", "next_setpoint - p_own",
+                 "intercept - p_own", "t_intercept", "route_residual",
+                 "route_deviation")  # fmt: skip
+    reads_conformity = True  # the env fills the view's route_residual and route_deviation
+
+    def __init__(
+        self,
+        *,
+        conformity_time: float = 1.0,
+        route_lag: Sequence[float] = (0.9, 0.9, 0.35),
+        position_scale: float = 50.0,
+        velocity_scale: float = 5.0,
+        time_scale: float = 60.0,
+        accel_scale: float = 5.0,
+        world_scale: float = 50.0,
+        opponents: int = 1,
+        mates: int = 0,
+        in_play: bool = False,
+    ) -> None:
+        super().__init__(position_scale=position_scale, velocity_scale=velocity_scale,
+                         time_scale=time_scale, accel_scale=accel_scale, world_scale=world_scale,
+                         opponents=opponents, mates=mates, in_play=in_play)  # fmt: skip
+        if not conformity_time > 0:
+            raise ConfigError(f"observation.conformity_time: must be > 0, got {conformity_time}")
+        self.conformity_time = float(conformity_time)
+        if len(route_lag) != 3 or not all(x > 0 for x in route_lag):
+            raise ConfigError(f"observation.route_lag: must be 3 numbers > 0, got {route_lag}")
+        self.route_lag = tuple(float(x) for x in route_lag)
+
+    def _own(self, view: DroneView) -> list[Tensor]:
+        if view.route_residual is None or view.route_deviation is None:
+            raise ValueError("observation pursuit_conform: the view has no route residual")
+        conform = [view.route_residual, view.route_deviation.unsqueeze(-1)]
+        return [*super()._own(view), *conform]
+
+
 class RouteStateObservation(RelativeStateObservation):
     """What a route-flying defender needs: its own velocity, the way to its next setpoint and
     each other drone's relative state.
@@ -385,6 +446,7 @@ OBSERVATIONS = {
     "pursuit_world": PursuitWorldObservation,
     "pursuit_route": PursuitRouteObservation,
     "pursuit_intercept": PursuitInterceptObservation,
+    "pursuit_conform": PursuitConformObservation,
     "route_state": RouteStateObservation,
 }
 
@@ -796,6 +858,7 @@ class RewardContext:
         route_progress: (*B,) m the defender gained on its current setpoint during the step
             (negative when it moved away; 0 once its route is flown).
         setpoint_reached: (*B,) bool, the defender reached its current setpoint in the step.
+        action: (*B, A) the learner's action of the step, in [-1, 1] per component.
     """
 
     distance: Tensor
@@ -805,6 +868,7 @@ class RewardContext:
     distance_scale: float
     route_progress: Tensor | None = None
     setpoint_reached: Tensor | None = None
+    action: Tensor | None = None
 
 
 def _capture(c: RewardContext) -> Tensor:
@@ -842,6 +906,12 @@ def _setpoint_reached(c: RewardContext) -> Tensor:
     return c.setpoint_reached.float()
 
 
+def _action_sq(c: RewardContext) -> Tensor:
+    """The action's mean square per component: 1 at full scale, 0 for a zero action (with a
+    correction action such as ``route_law``, flying the law unchanged)."""
+    return c.action.square().mean(-1)
+
+
 #: Reward terms: each returns an unweighted (*B,) float32 value; a YAML gives the weights.
 REWARD_TERMS: dict[str, Callable[[RewardContext], Tensor]] = {
     "capture": _capture,
@@ -852,6 +922,7 @@ REWARD_TERMS: dict[str, Callable[[RewardContext], Tensor]] = {
     "proximity": _proximity,
     "route_progress": _route_progress,
     "setpoint_reached": _setpoint_reached,
+    "action_sq": _action_sq,
 }
 
 

@@ -246,6 +246,14 @@ class PursuitEnv(EnvBase):
         if meets and learner != "attacker":
             raise ConfigError("observation/action: the route's meeting point is an attacker's; "
                               f"this run's learner is the {learner}")  # fmt: skip
+        self._conforms = bool(getattr(observation, "reads_conformity", False))
+        if self._conforms and learner != "attacker":
+            raise ConfigError("observation: a defender's route conformity is an attacker's; "
+                              f"this run's learner is the {learner}")  # fmt: skip
+        if self._conforms:  # a setpoints defender's mean acceleration per m/s of velocity
+            # error over one control period: its velocity follows its command with these lags
+            lag = torch.tensor(observation.route_lag, device=self.device)
+            self._route_rate = -torch.expm1(-control_period / lag) / control_period
         self.dynamics = dynamics
         self.obs_fn, self.action_fn, self.reward_fn = observation, action, reward
         # Drones: attackers first, then defenders; the learner's role is its team.
@@ -295,6 +303,10 @@ class PursuitEnv(EnvBase):
         self.max_speed = torch.ones(num_envs, k + m, device=self.device)
         # Each drone's mean acceleration over the last control period (m/s^2).
         self.acceleration = torch.zeros(num_envs, k + m, 3, device=self.device)
+        # How each defender departs from its route (pursuit_conform): the residual of its last
+        # acceleration (m/s^2) and that residual's size averaged over conformity_time.
+        self.route_residual = torch.zeros(num_envs, m, 3, device=self.device)
+        self.route_deviation = torch.zeros(num_envs, m, device=self.device)
         self._make_specs(num_envs)
 
     def close(self, *, raise_if_closed: bool = True) -> None:
@@ -398,6 +410,8 @@ class PursuitEnv(EnvBase):
             position[mask] = torch.cat([sc["attacker_start"], sc["defender_start"]], 1)
             self.dynamics.reset(mask, position, torch.zeros_like(position), self.max_speed.clone())
             self.acceleration = self.acceleration.masked_fill(mask.view(n, 1, 1), 0.0)
+            self.route_residual = self.route_residual.masked_fill(mask.view(n, 1, 1), 0.0)
+            self.route_deviation = self.route_deviation.masked_fill(rows, 0.0)
         sight = self._sight(self._relative(self.dynamics.position))
         flag = torch.zeros(n, 1, dtype=torch.bool, device=self.device)
         out = self._outputs(
@@ -449,9 +463,16 @@ class PursuitEnv(EnvBase):
         defend = defend.masked_fill(caught.unsqueeze(-1), 0.0)  # a caught defender holds
         rel_before = self._relative(p)
         to_target = (target - p[:, self.defenders]).norm(dim=-1)
+        if self._conforms:  # what a defender flying its route would do in this state
+            speed = self.max_speed[:, self.defenders]
+            follow = follow_route(p[:, self.defenders], target, route_done, speed,
+                                  self.setpoint_gain)  # fmt: skip
+            expected = (follow - v[:, self.defenders]) * self._route_rate
         self.dynamics.advance(torch.cat([attack, defend], 1), self.control_period)
         p = self.dynamics.position
         self.acceleration = (self.dynamics.velocity - v) / self.control_period
+        if self._conforms:
+            self._conform(expected, caught)
         self.step_count = self.step_count + 1
         # A defender moves on once it is within the acceptance radius of its setpoint.
         to_target_after = (target - p[:, self.defenders]).norm(dim=-1)
@@ -481,6 +502,7 @@ class PursuitEnv(EnvBase):
                 self.reward_fn.distance_scale,
                 route_progress=progress,
                 setpoint_reached=reached,
+                action=action.reshape(n, t, -1),
             )
         )
         if self.learner != ATTACKER:  # a defender caught before this step is out: no reward
@@ -510,6 +532,16 @@ class PursuitEnv(EnvBase):
         )
 
     # Helpers -----------------------------------------------------------------------------
+
+    def _conform(self, expected: Tensor, caught: Tensor) -> None:
+        """Update each defender's route conformity from the acceleration ``expected`` (N, m, 3)
+        m/s^2 of a ``setpoints`` defender in the state before this step; a caught defender's
+        is zero."""
+        residual = self.acceleration[:, self.defenders] - expected
+        residual = residual.masked_fill(caught.unsqueeze(-1), 0.0)
+        blend = 1.0 - math.exp(-self.control_period / self.obs_fn.conformity_time)
+        self.route_residual = residual
+        self.route_deviation = torch.lerp(self.route_deviation, residual.norm(dim=-1), blend)
 
     def _target(self) -> tuple[Tensor, Tensor]:
         """Each defender's current setpoint (N, m, 3) and whether its route is done (N, m)."""
@@ -648,6 +680,11 @@ class PursuitEnv(EnvBase):
         if self.obs_fn.reads_intercept:  # an observation that reads the meeting point
             aim, due, _ = self._meeting
             view = replace(view, intercept=aim, intercept_time=due)
+        if self._conforms:  # an observation that reads how the nearest defender keeps its route
+            near = nearest(p[:, self.attackers], p[:, self.defenders], targets(self.caught))
+            residual = gather_drones(self.route_residual, near)
+            deviation = self.route_deviation.gather(1, near)
+            view = replace(view, route_residual=residual, route_deviation=deviation)
         if "a" in self.obs_fn.other_layout:  # an observation that reads accelerations
             a = self.acceleration
             other_a = a[:, self.opponents].unsqueeze(1).expand(n, t, -1, 3)

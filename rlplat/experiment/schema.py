@@ -244,6 +244,8 @@ OBSERVATION_KNOBS: dict[str, Rule] = {
     "time_scale": POSITIVE,
     "accel_scale": POSITIVE,
     "world_scale": POSITIVE,
+    "conformity_time": POSITIVE,
+    "route_lag": Seq(POSITIVE, n=3),
 }
 #: Knobs of the actions (conf/action/).
 ACTION_KNOBS: dict[str, Rule] = {
