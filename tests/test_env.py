@@ -159,6 +159,16 @@ def test_action_sq_prices_the_size_of_the_action(scenarios):
     torch.testing.assert_close(out["reward"], terms)
 
 
+def test_a_baseline_flies_without_the_price_of_a_correction():
+    from rlplat.experiment.evaluation import plain_action
+
+    cfg = compose_config("train", ["drone=attacker_v11"])
+    plain = plain_action(cfg)
+    assert plain.action.name == "velocity" and cfg.action.name == "route_law"
+    assert set(plain.reward.terms) == set(cfg.reward.terms) - {"action_sq"}
+    assert "action_sq" in cfg.reward.terms  # the run's own config is unchanged
+
+
 def test_shaped_strict_makes_losing_sight_the_worst_in_flight_step():
     strict = OmegaConf.load(CONF / "reward" / "shaped_strict.yaml")
     eq3 = OmegaConf.load(CONF / "reward" / "shaped.yaml")

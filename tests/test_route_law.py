@@ -275,9 +275,13 @@ def test_a_route_flyer_keeps_a_small_deviation_an_evader_does_not(tmp_path, writ
     assert median["route"] < 0.5 < 1.5 < median["nn"], median
 
 
-def test_pursuit_conform_refuses_a_bad_route_lag(scenarios):
-    with pytest.raises(ConfigError, match="observation.route_lag"):
-        make_env(V11, "observation.route_lag=[0.9,0.9]", scenarios=scenarios, num_envs=2)
+def test_pursuit_conform_refuses_a_bad_route_lag_and_a_defender(scenarios):
+    for lag in ("[0.9,0.9]", "0.9", "[0.9,0.9,-1]"):
+        with pytest.raises(ConfigError, match="observation.route_lag: must be 3 numbers > 0"):
+            make_env(V11, f"observation.route_lag={lag}", scenarios=scenarios, num_envs=2)
+    with pytest.raises(ConfigError, match="route conformity is an attacker's"):
+        make_env("drone=defender_v1", "observation=pursuit_conform", scenarios=scenarios,
+                 num_envs=2)  # fmt: skip
     with pytest.raises(ConfigError, match="observation.conformity_time"):
         make_env(V11, "observation.conformity_time=0", scenarios=scenarios, num_envs=2)
 

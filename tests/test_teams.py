@@ -11,6 +11,7 @@ from torchrl.envs.utils import check_env_specs
 from rlplat import make_env
 from rlplat.agents.policies import make_scripted_policy
 from rlplat.agents.transitions import agent_rows
+from rlplat.envs.kinematics import nearest, targets
 from rlplat.errors import ConfigError
 from rlplat.eval.episodes import evaluate
 from rlplat.scenarios import ScenarioSet, write_scenario_set
@@ -53,6 +54,24 @@ def test_specs_of_every_team_size(team_sets, drone, k, m):
     assert td[role, "distance"].shape == (3, team, 1)
     if role == "defender":
         assert td["defender", "caught"].shape == (3, team, 1)
+
+
+@pytest.mark.parametrize(("k", "m"), TEAMS)
+def test_pursuit_conform_reads_each_attackers_nearest_defender(team_sets, k, m):
+    env = make_env("drone=attacker_v11", scenarios=team_sets[k, m], num_envs=3)
+    check_env_specs(env, seed=0)
+    obs_key = "observation" if k == 1 else (env.group, "observation")
+    td = env.reset()
+    assert td[obs_key].shape[-1] == 18 + (6 + (m > 1)) * (k + m - 1)
+    action = torch.full(env.full_action_spec[env.action_key].shape, 0.5)
+    for _ in range(15):
+        td = env.step(td.set(env.action_key, action))["next"]
+        obs = td[obs_key].reshape(3, k, -1)
+        p = env.dynamics.position
+        near = nearest(p[:, :k], p[:, k:], targets(env.caught))  # (3, k)
+        residual = env.route_residual.gather(1, near.unsqueeze(-1).expand(3, k, 3))
+        torch.testing.assert_close(obs[..., 14:17], residual)
+        torch.testing.assert_close(obs[..., 17], env.route_deviation.gather(1, near))
 
 
 @pytest.mark.parametrize("drone", ["attacker_v8", "defender_v1"])

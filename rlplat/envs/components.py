@@ -410,9 +410,13 @@ class PursuitConformObservation(PursuitInterceptObservation):
         if not conformity_time > 0:
             raise ConfigError(f"observation.conformity_time: must be > 0, got {conformity_time}")
         self.conformity_time = float(conformity_time)
-        if len(route_lag) != 3 or not all(x > 0 for x in route_lag):
+        try:
+            lag = tuple(float(x) for x in route_lag)
+        except (TypeError, ValueError):
+            lag = ()
+        if len(lag) != 3 or not all(x > 0 for x in lag):  # NaN fails too
             raise ConfigError(f"observation.route_lag: must be 3 numbers > 0, got {route_lag}")
-        self.route_lag = tuple(float(x) for x in route_lag)
+        self.route_lag = lag
 
     def _own(self, view: DroneView) -> list[Tensor]:
         if view.route_residual is None or view.route_deviation is None:

@@ -241,14 +241,14 @@ class PursuitEnv(EnvBase):
         if self._guided and learner != "attacker":
             raise ConfigError("action: a guided action flies attackers; this run's learner is "
                               f"the {learner} (valid: velocity)")  # fmt: skip
+        self._conforms = bool(getattr(observation, "reads_conformity", False))
+        if self._conforms and learner != "attacker":
+            raise ConfigError("observation: a defender's route conformity is an attacker's; "
+                              f"this run's learner is the {learner}")  # fmt: skip
         self._meets = bool(getattr(action, "reads_route", False))  # the guidance's meeting point
         meets = self._meets or getattr(observation, "reads_intercept", False)
         if meets and learner != "attacker":
             raise ConfigError("observation/action: the route's meeting point is an attacker's; "
-                              f"this run's learner is the {learner}")  # fmt: skip
-        self._conforms = bool(getattr(observation, "reads_conformity", False))
-        if self._conforms and learner != "attacker":
-            raise ConfigError("observation: a defender's route conformity is an attacker's; "
                               f"this run's learner is the {learner}")  # fmt: skip
         if self._conforms:  # a setpoints defender's mean acceleration per m/s of velocity
             # error over one control period: its velocity follows its command with these lags

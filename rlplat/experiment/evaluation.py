@@ -388,11 +388,15 @@ def ensemble_members(
 
 
 def plain_action(cfg: DictConfig) -> DictConfig:
-    """``cfg`` with the plain velocity action (eq. 2) in place of any other."""
+    """``cfg`` with the plain velocity action (eq. 2) in place of any other. A reward's
+    ``action_sq`` prices a correction to a law; a plain command is none, so it is dropped."""
     if cfg.action.get("name") == "velocity":
         return cfg
     plain = OmegaConf.merge(cfg, {"action": None})
     plain.action = {"name": "velocity"}
+    terms = plain.get("reward", {}).get("terms", {})
+    if "action_sq" in terms:
+        plain.reward.terms = {k: v for k, v in terms.items() if k != "action_sq"}
     return plain
 
 

@@ -278,8 +278,9 @@ def interface_card(src: Source, env, actor: DeterministicActor, features) -> dic
             "model": "route_residual = a - (c - v) * (1 - exp(-dt / route_lag)) / dt per axis, "
             "a the defender's mean acceleration over the last control period dt, v its velocity "
             "and c its setpoint follower's command (rlplat.envs.kinematics.follow_route) at the "
-            "period's start (0 once caught); route_deviation += (|route_residual| - "
-            "route_deviation) * (1 - exp(-dt / conformity_time)), 0 at the episode's start",
+            "period's start (0 from the step after its capture); route_deviation += "
+            "(|route_residual| - route_deviation) * (1 - exp(-dt / conformity_time)), 0 at the "
+            "episode's start",
             "route_lag": list(env.obs_fn.route_lag),
             "conformity_time": env.obs_fn.conformity_time,
             "control_period": env.control_period,
