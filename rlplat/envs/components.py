@@ -395,18 +395,9 @@ class PursuitConformObservation(PursuitInterceptObservation):
         *,
         conformity_time: float = 1.0,
         route_lag: Sequence[float] = (0.9, 0.9, 0.35),
-        position_scale: float = 50.0,
-        velocity_scale: float = 5.0,
-        time_scale: float = 60.0,
-        accel_scale: float = 5.0,
-        world_scale: float = 50.0,
-        opponents: int = 1,
-        mates: int = 0,
-        in_play: bool = False,
+        **scales: Any,
     ) -> None:
-        super().__init__(position_scale=position_scale, velocity_scale=velocity_scale,
-                         time_scale=time_scale, accel_scale=accel_scale, world_scale=world_scale,
-                         opponents=opponents, mates=mates, in_play=in_play)  # fmt: skip
+        super().__init__(**scales)  # the scales, opponents, mates and in_play of the base
         if not conformity_time > 0:
             raise ConfigError(f"observation.conformity_time: must be > 0, got {conformity_time}")
         self.conformity_time = float(conformity_time)

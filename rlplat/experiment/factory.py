@@ -6,7 +6,6 @@ With ``dynamics=airsim`` an env batch is one env per simulator, in parallel work
 from __future__ import annotations
 
 import hashlib
-import inspect
 import json
 import logging
 import os
@@ -23,6 +22,7 @@ from rlplat.envs.dynamics import DYNAMICS, DroneDynamics
 from rlplat.envs.parallel import PursuitParallelEnv, worker_env
 from rlplat.envs.pursuit import PursuitEnv, flown_attackers
 from rlplat.errors import ConfigError
+from rlplat.experiment.rules import keyword_parameters
 from rlplat.scenarios import STRATEGIES, ScenarioSet, ScenarioSpec, write_scenario_set
 
 log = logging.getLogger(__name__)
@@ -35,10 +35,7 @@ def checked_kwargs(
     fn: Callable[..., Any], node: Mapping[str, Any], where: str, reserved: tuple[str, ...] = ()
 ) -> dict[str, Any]:
     """``node`` as keyword arguments of ``fn``; an unknown key fails naming the valid ones."""
-    target = fn.__init__ if inspect.isclass(fn) else fn
-    params = list(inspect.signature(target).parameters)
-    if inspect.isclass(fn):
-        params = params[1:]  # self
+    params = list(keyword_parameters(fn))
     valid = [p for p in params if p not in reserved]
     for key in node:
         if key not in valid:

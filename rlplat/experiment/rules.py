@@ -8,6 +8,7 @@ the field and quotes the value, e.g. ``algo.actor_lr: must be a finite number > 
 
 from __future__ import annotations
 
+import inspect
 import math
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
@@ -218,3 +219,20 @@ def check_table(c: Mapping[str, Any], rules: Mapping[str, Rule]) -> None:
             if key not in valid:
                 where = f"{node}.{key}" if node else str(key)
                 raise ConfigError(f"{where}: unknown key; valid: {', '.join(valid)}")
+
+
+def keyword_parameters(fn: Callable[..., Any]) -> dict[str, inspect.Parameter]:
+    """The named parameters of ``fn`` (of a class: its ``__init__``'s, and its bases' as long
+    as each passes ``**kwargs`` on), in order."""
+    out: dict[str, inspect.Parameter] = {}
+    for target in fn.__mro__ if inspect.isclass(fn) else (fn,):
+        init = target.__init__ if inspect.isclass(fn) else target
+        if init is object.__init__:
+            break
+        params = inspect.signature(init).parameters.values()
+        for p in params:
+            if p.name != "self" and p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL):
+                out.setdefault(p.name, p)
+        if not any(p.kind == p.VAR_KEYWORD for p in params):
+            break
+    return out

@@ -18,7 +18,6 @@ refused wherever a number is expected.
 
 from __future__ import annotations
 
-import inspect
 import math
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any
@@ -53,6 +52,7 @@ from rlplat.experiment.rules import (
     check_table,
     device,
     flag,
+    keyword_parameters,
     lookup,
     show,
 )
@@ -308,7 +308,7 @@ EXPORT_RULES: dict[str, Rule] = {
 def knobs(cls: Callable[..., Any], factory_args: Iterable[str]) -> dict[str, Any]:
     """A component class's config knobs and their defaults (its keyword arguments but those
     the env factory passes)."""
-    params = inspect.signature(cls).parameters.values()
+    params = keyword_parameters(cls).values()
     return {p.name: p.default for p in params if p.name not in factory_args}
 
 
