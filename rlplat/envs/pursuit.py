@@ -254,6 +254,8 @@ class PursuitEnv(EnvBase):
             # error over one control period: its velocity follows its command with these lags
             lag = torch.tensor(observation.route_lag, device=self.device)
             self._route_rate = -torch.expm1(-control_period / lag) / control_period
+            # the deviation's step towards each new residual size (time constant conformity_time)
+            self._conform_blend = -math.expm1(-control_period / observation.conformity_time)
         self.dynamics = dynamics
         self.obs_fn, self.action_fn, self.reward_fn = observation, action, reward
         # Drones: attackers first, then defenders; the learner's role is its team.
@@ -539,9 +541,10 @@ class PursuitEnv(EnvBase):
         is zero."""
         residual = self.acceleration[:, self.defenders] - expected
         residual = residual.masked_fill(caught.unsqueeze(-1), 0.0)
-        blend = 1.0 - math.exp(-self.control_period / self.obs_fn.conformity_time)
         self.route_residual = residual
-        self.route_deviation = torch.lerp(self.route_deviation, residual.norm(dim=-1), blend)
+        self.route_deviation = torch.lerp(
+            self.route_deviation, residual.norm(dim=-1), self._conform_blend
+        )
 
     def _target(self) -> tuple[Tensor, Tensor]:
         """Each defender's current setpoint (N, m, 3) and whether its route is done (N, m)."""

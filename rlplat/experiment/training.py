@@ -272,8 +272,9 @@ def make_interface(cfg: DictConfig, env: PursuitEnv) -> dict[str, Any]:
         "attackers": env.num_attackers,
         "defenders": env.num_defenders,
     }
-    if env.computes_meeting:
-        interface["route_path"] = route_path_interface(env)
+    path = route_path_interface(env)
+    if path is not None:
+        interface["route_path"] = path
     return interface
 
 
