@@ -74,6 +74,39 @@ def test_pursuit_conform_reads_each_attackers_nearest_defender(team_sets, k, m):
         torch.testing.assert_close(obs[..., 17], env.route_deviation.gather(1, near))
 
 
+@pytest.mark.parametrize(("k", "m"), TEAMS)
+def test_team_sight_says_which_attacker_the_defender_sees(team_sets, k, m):
+    sight = make_env("drone=attacker_v11", "observation.team_sight=true",
+                     scenarios=team_sets[k, m], num_envs=3)  # fmt: skip
+    plain = make_env("drone=attacker_v11", scenarios=team_sets[k, m], num_envs=3)
+    check_env_specs(sight, seed=0)
+    obs_key = "observation" if k == 1 else (sight.group, "observation")
+    sight.set_seed(0)
+    plain.set_seed(0)
+    td, td_plain = sight.reset(), plain.reset()
+    if k == 1:  # nothing to compare with: the 1-vs-1 observation, unchanged
+        torch.testing.assert_close(td[obs_key], td_plain[obs_key], rtol=0, atol=0)
+        return
+    assert td[obs_key].shape[-1] == td_plain[obs_key].shape[-1] + 1
+    assert sight.obs_fn.features()[18]["name"] == "sight_margin"
+    action = torch.full(sight.full_action_spec[sight.action_key].shape, 0.5)
+    for _ in range(5):
+        td = sight.step(td.set(sight.action_key, action))["next"]
+        p = sight.dynamics.position
+        near = nearest(p[:, :k], p[:, k:], targets(sight.caught))  # (3, k)
+        defender = p[:, k:].gather(1, near.unsqueeze(-1).expand(3, k, 3))  # (3, k, 3)
+        to_own = (defender - p[:, :k]).norm(dim=-1)
+        to_mate = (defender.unsqueeze(2) - p[:, :k].unsqueeze(1)).norm(dim=-1)  # (3, k, k)
+        to_mate = to_mate.masked_fill(torch.eye(k, dtype=torch.bool), float("inf"))
+        margin = td[obs_key][..., 18]
+        torch.testing.assert_close(margin, to_mate.amin(-1) - to_own)
+        # Exactly one attacker of each pair is the defender's nearest (ties aside).
+        assert ((margin > 0).sum(-1) == 1).all()
+    # The rest of the observation is pursuit_conform's.
+    without = torch.cat([td[obs_key][..., :18], td[obs_key][..., 19:]], -1)
+    assert without.shape == td_plain[obs_key].shape
+
+
 @pytest.mark.parametrize("drone", ["attacker_v8", "defender_v1"])
 @pytest.mark.parametrize(("k", "m"), TEAMS)
 def test_pursuit_accel_blocks_hold_each_other_drones_acceleration(team_sets, drone, k, m):

@@ -104,7 +104,8 @@ class _Observation:
             can leave play before the episode ends: more than one of them).
     """
 
-    own_layout: tuple[str, ...] = ()  # "p"/"v"/"w"/"a" per 3-vector, "s" speed, "t" time, "e" accel
+    # "p"/"v"/"w"/"a" per 3-vector; "s" speed, "t" time, "e" accel, "d" distance (scalars)
+    own_layout: tuple[str, ...] = ()
     other_layout: tuple[str, ...] = ()  # "p", "v" or "a" per 3-vector of each other drone's block
     own_names: tuple[str, ...] = ()  # what each own 3-vector is (same order as own_layout)
     other_names: tuple[str, ...] = ()  # each other drone's, "{d}" standing for that drone
@@ -145,6 +146,7 @@ class _Observation:
             "s": [float(velocity_scale)],
             "t": [float(time_scale)],
             "e": [float(accel_scale)],
+            "d": [float(position_scale)],
             "f": [1.0],
         }
         self.scale = [x for kind in layout for x in per[kind]]
@@ -155,7 +157,8 @@ class _Observation:
         ``unit`` (``m``, ``m/s``, ``m/s^2``, ``s`` or ``1`` for an in-play flag) and ``scale``,
         in order."""
         kinds = {"p": ("m", 3), "w": ("m", 3), "v": ("m/s", 3), "a": ("m/s^2", 3),
-                 "s": ("m/s", 1), "t": ("s", 1), "e": ("m/s^2", 1), "f": ("1", 1)}  # fmt: skip
+                 "s": ("m/s", 1), "t": ("s", 1), "e": ("m/s^2", 1), "d": ("m", 1),
+                 "f": ("1", 1)}  # fmt: skip
         named = list(zip(self.own_names, self.own_layout, strict=True))
         others = [f"opponent{i}" for i in range(self.opponents)]
         others += [f"mate{j}" for j in range(self.mates)]
@@ -382,6 +385,11 @@ class PursuitConformObservation(PursuitInterceptObservation):
     leaves its route to evade shows at once: the meeting point on its route is then no longer
     where it will be, and a policy that sees it can tell the route flyers, which the law
     meets, from the evaders. Attackers only.
+
+    With ``team_sight``, an attacker with team-mates also sees ``sight_margin``
+    (:func:`sight_margin`, one more feature after the deviation): whether it or a team-mate is
+    nearer the defender, i.e. which of them a network defender sees and evades. Without
+    team-mates it adds nothing.
     """
 
     own_layout = ("v", "s", "p", "p", "p", "t", "a", "e")
@@ -395,8 +403,13 @@ class PursuitConformObservation(PursuitInterceptObservation):
         *,
         conformity_time: float = 1.0,
         route_lag: Sequence[float] = (0.9, 0.9, 0.35),
+        team_sight: bool = False,
         **scales: Any,
     ) -> None:
+        self.team_sight = bool(team_sight) and scales.get("mates", 0) > 0
+        if self.team_sight:  # one more own feature, in a team only
+            self.own_layout = (*type(self).own_layout, "d")
+            self.own_names = (*type(self).own_names, "sight_margin")
         super().__init__(**scales)  # the scales, opponents, mates and in_play of the base
         if not conformity_time > 0:
             raise ConfigError(f"observation.conformity_time: must be > 0, got {conformity_time}")
@@ -413,7 +426,26 @@ class PursuitConformObservation(PursuitInterceptObservation):
         if view.route_residual is None or view.route_deviation is None:
             raise ValueError("observation pursuit_conform: the view has no route residual")
         conform = [view.route_residual, view.route_deviation.unsqueeze(-1)]
+        if self.team_sight:
+            conform.append(sight_margin(view))
         return [*super()._own(view), *conform]
+
+
+def sight_margin(view: DroneView) -> Tensor:
+    """How much nearer the drone is to its nearest opponent in play than its nearest team-mate
+    is to that opponent, (*B, 1) m: positive where the drone is the opponent's nearest, the one
+    a network defender sees and evades (it sees only its nearest attacker)."""
+    rel = view.other_position - view.own_position.unsqueeze(-2)  # (*B, M, 3)
+    distance = rel.norm(dim=-1)
+    if view.other_in_play is not None:
+        distance = distance.masked_fill(~view.other_in_play, float("inf"))
+    near = distance.argmin(-1, keepdim=True)  # (*B, 1)
+    target = view.other_position.gather(-2, near.unsqueeze(-1).expand(*near.shape, 3))  # (*B, 1, 3)
+    mates = (view.mate_position - target).norm(dim=-1)  # (*B, K)
+    if view.mate_in_play is not None:
+        mates = mates.masked_fill(~view.mate_in_play, float("inf"))
+    own = distance.gather(-1, near)  # (*B, 1)
+    return (mates.amin(-1, keepdim=True) - own).clamp(max=100.0)
 
 
 class RouteStateObservation(RelativeStateObservation):

@@ -246,6 +246,7 @@ OBSERVATION_KNOBS: dict[str, Rule] = {
     "world_scale": POSITIVE,
     "conformity_time": POSITIVE,
     "route_lag": Seq(POSITIVE, n=3),
+    "team_sight": flag,
 }
 #: Knobs of the actions (conf/action/).
 ACTION_KNOBS: dict[str, Rule] = {
