@@ -11,6 +11,7 @@ from torchrl.envs.utils import check_env_specs
 from rlplat import make_env
 from rlplat.agents.policies import make_scripted_policy
 from rlplat.agents.transitions import agent_rows
+from rlplat.envs.components import DroneView, sight_margin
 from rlplat.envs.kinematics import nearest, targets
 from rlplat.errors import ConfigError
 from rlplat.eval.episodes import evaluate
@@ -105,6 +106,21 @@ def test_team_sight_says_which_attacker_the_defender_sees(team_sets, k, m):
     # The rest of the observation is pursuit_conform's.
     without = torch.cat([td[obs_key][..., :18], td[obs_key][..., 19:]], -1)
     assert without.shape == td_plain[obs_key].shape
+
+
+def test_sight_margin_picks_the_nearest_defender_in_play():
+    zero = torch.zeros(1, 3)
+    defenders = torch.tensor([[[3.0, 0.0, 0.0], [0.0, 10.0, 0.0]]])  # (1, 2, 3)
+    mate = torch.tensor([[[0.0, 4.0, 0.0]]])  # 6 m from the second defender, 5 m from the first
+
+    def margin(in_play):
+        view = DroneView(zero, zero, defenders, torch.zeros_like(defenders), mate_position=mate,
+                         mate_velocity=torch.zeros_like(mate), other_in_play=in_play)  # fmt: skip
+        return sight_margin(view).item()
+
+    assert margin(torch.tensor([[True, True]])) == pytest.approx(5.0 - 3.0)
+    assert margin(torch.tensor([[False, True]])) == pytest.approx(6.0 - 10.0)
+    assert margin(torch.tensor([[False, False]])) == pytest.approx(5.0 - 3.0)  # all: as the env
 
 
 @pytest.mark.parametrize("drone", ["attacker_v8", "defender_v1"])

@@ -435,17 +435,17 @@ def sight_margin(view: DroneView) -> Tensor:
     """How much nearer the drone is to its nearest opponent in play than its nearest team-mate
     is to that opponent, (*B, 1) m: positive where the drone is the opponent's nearest, the one
     a network defender sees and evades (it sees only its nearest attacker)."""
-    rel = view.other_position - view.own_position.unsqueeze(-2)  # (*B, M, 3)
-    distance = rel.norm(dim=-1)
-    if view.other_in_play is not None:
-        distance = distance.masked_fill(~view.other_in_play, float("inf"))
-    near = distance.argmin(-1, keepdim=True)  # (*B, 1)
-    target = view.other_position.gather(-2, near.unsqueeze(-1).expand(*near.shape, 3))  # (*B, 1, 3)
+    distance = (view.other_position - view.own_position.unsqueeze(-2)).norm(dim=-1)  # (*B, M)
+    chosen = distance
+    if view.other_in_play is not None:  # once none is in play, all of them (as the env)
+        out = ~view.other_in_play & view.other_in_play.any(-1, keepdim=True)
+        chosen = distance.masked_fill(out, float("inf"))
+    near = chosen.argmin(-1, keepdim=True)  # (*B, 1)
+    target = view.other_position.gather(-2, near.unsqueeze(-1).expand(*near.shape, 3))
     mates = (view.mate_position - target).norm(dim=-1)  # (*B, K)
-    if view.mate_in_play is not None:
+    if view.mate_in_play is not None:  # a team-mate out of play counts as far away
         mates = mates.masked_fill(~view.mate_in_play, float("inf"))
-    own = distance.gather(-1, near)  # (*B, 1)
-    return (mates.amin(-1, keepdim=True) - own).clamp(max=100.0)
+    return (mates.amin(-1, keepdim=True) - distance.gather(-1, near)).clamp(max=100.0)
 
 
 class RouteStateObservation(RelativeStateObservation):
