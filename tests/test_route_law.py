@@ -281,8 +281,11 @@ def test_pursuit_conform_refuses_a_bad_route_lag_and_a_defender(scenarios):
             make_env(V11, f"observation.route_lag={lag}", scenarios=scenarios, num_envs=2)
     # Its own options and, passed on, those of the observation it extends.
     with pytest.raises(ConfigError, match="observation.bogus: unknown option; valid: "
-                       "conformity_time, route_lag, position_scale, velocity_scale"):  # fmt: skip
+                       "conformity_time, route_lag, team_sight, position_scale, "
+                       "velocity_scale"):  # fmt: skip
         make_env(V11, "+observation.bogus=1", scenarios=scenarios, num_envs=2)
+    with pytest.raises(ConfigError, match="observation.team_sight: must be true or false"):
+        make_env(V11, "observation.team_sight=3", scenarios=scenarios, num_envs=2)
     with pytest.raises(ConfigError, match="route conformity is an attacker's"):
         make_env("drone=defender_v1", "observation=pursuit_conform", scenarios=scenarios,
                  num_envs=2)  # fmt: skip

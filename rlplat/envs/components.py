@@ -406,7 +406,9 @@ class PursuitConformObservation(PursuitInterceptObservation):
         team_sight: bool = False,
         **scales: Any,
     ) -> None:
-        self.team_sight = bool(team_sight) and scales.get("mates", 0) > 0
+        if not isinstance(team_sight, bool):
+            raise ConfigError(f"observation.team_sight: must be true or false, got {team_sight!r}")
+        self.team_sight = team_sight and scales.get("mates", 0) > 0
         if self.team_sight:  # one more own feature, in a team only
             self.own_layout = (*type(self).own_layout, "d")
             self.own_names = (*type(self).own_names, "sight_margin")
