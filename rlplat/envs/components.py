@@ -13,7 +13,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from rlplat.envs.kinematics import aim_velocity, intercept_action, route_law
+from rlplat.envs.kinematics import aim_velocity, intercept_action, route_law, targets
 from rlplat.errors import ConfigError
 
 
@@ -439,9 +439,8 @@ def sight_margin(view: DroneView) -> Tensor:
     a network defender sees and evades (it sees only its nearest attacker)."""
     distance = (view.other_position - view.own_position.unsqueeze(-2)).norm(dim=-1)  # (*B, M)
     chosen = distance
-    if view.other_in_play is not None:  # once none is in play, all of them (as the env)
-        out = ~view.other_in_play & view.other_in_play.any(-1, keepdim=True)
-        chosen = distance.masked_fill(out, float("inf"))
+    if view.other_in_play is not None:  # the env's rule: once none is in play, all of them
+        chosen = distance.masked_fill(~targets(~view.other_in_play), float("inf"))
     near = chosen.argmin(-1, keepdim=True)  # (*B, 1)
     target = view.other_position.gather(-2, near.unsqueeze(-1).expand(*near.shape, 3))
     mates = (view.mate_position - target).norm(dim=-1)  # (*B, K)
