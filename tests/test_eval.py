@@ -235,10 +235,27 @@ def test_compare_mode_flies_every_baseline_in_one_command(trained_run):
         .read_text()
         .split("## Against the capture ceiling")
     )
-    ceiling, paired = rest.split("## Against proportional navigation, scenario by scenario")
+    ceiling, rest = rest.split("## Against the route ceiling")
+    route, paired = rest.split("## Against proportional navigation, scenario by scenario")
     assert table.count("\n| ") == 5  # the header and one row per policy
     # the ceiling table: its header, the scenarios it covers, the ceiling, one row per policy
     assert ceiling.count("\n| ") == 7 and "\n| proportional_navigation |" in ceiling
+    # the route ceiling covers every scenario, per defender strategy: the same rows
+    assert route.count("\n| ") == 7 and "| defender | all | setpoints | nn |" in route
+    with open(trained_run / "eval" / "val-best" / "episodes.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert {r["defender_strategy"] for r in rows} == {"setpoints", "nn"}
+    for r in rows:  # defined everywhere; for a route flyer, its capture ceiling
+        assert r["route_interceptable"] in ("0", "1")
+        assert r["interceptable"] == (
+            r["route_interceptable"] if r["defender_strategy"] == "setpoints" else ""
+        )
+    summary = json.loads((trained_run / "eval" / "val-best" / "summary.json").read_text())
+    assert summary["route_ceiling"]["scenarios"] == 16
+    assert (
+        summary["by_strategy"]["setpoints"]["route_ceiling"]
+        == summary["by_strategy"]["setpoints"]["ceiling"]
+    )
     # every other policy against the law, on the 16 validation scenarios
     assert paired.count("\n| ") == 4 and "| pure_pursuit | 1 | 16 | " in paired
     assert not list((trained_run / "eval" / "val-best").glob("*.png"))  # plots=false

@@ -171,6 +171,7 @@ def test_headroom_splits_the_scenarios_and_counts_a_capture_of_any_policy(tmp_pa
     assert list(rows) == groups
     everything, slow = rows["all", "all"], rows["setpoints", "<1"]
     assert everything["scenarios"] == 5 and everything["ceiling"] is None  # nn: no ceiling
+    assert "route_ceiling" not in everything  # no evaluation recorded one
     assert everything["any"] == 4 / 5  # only s3 was never captured
     assert everything["rates"] == {"attacker_v8 (best)": 5 / 10, "proportional_navigation": 2 / 5}
     assert slow["scenarios"] == 2 and slow["ceiling"] == 0.5 and slow["any"] == 0.5
@@ -203,6 +204,52 @@ def test_headroom_pools_only_what_one_attacker_table_can_hold(tmp_path, summary,
     _headroom_evaluation(tmp_path, "s1", "best", policy, [1, 1, 1, 1, 1], **summary)
     with pytest.raises(ConfigError, match=message):
         headroom_rows([tmp_path / "s0", tmp_path / "s1"])
+
+
+def test_headroom_bins_a_team_by_its_fastest_attacker_when_asked(tmp_path, capsys):
+    from rlplat.errors import ConfigError
+    from rlplat.eval.pool import headroom_rows, main
+
+    runs = []
+    for run, captured in (("s0", [1, 1, 0, 1, 1]), ("s1", [0, 1, 1, 0, 1])):
+        _headroom_evaluation(tmp_path, run, "best", "checkpoint", captured, attackers=2)
+        path = tmp_path / run / "eval" / "test-best" / "episodes.csv"
+        # The second attacker is the faster one in s0 (0.5 -> 2.0), s3 (0.5 -> 1.5) and s4.
+        lines = path.read_text().splitlines()
+        team = ["team_speed_ratio", "2.0", "2.0", "0.5", "1.5", "1.2"]
+        # The route ceiling: s0's network defender could be met on its route, s1's not.
+        route = ["route_interceptable", "1", "0", "1", "0", "1"]
+        cells = zip(lines, team, route, strict=True)
+        path.write_text("\n".join(",".join(c) for c in cells) + "\n")
+        runs.append(tmp_path / run)
+
+    def groups(ratio):
+        rows = headroom_rows(runs, ratio=ratio)
+        return {(r["defender"], r["speed_ratio"]): r["scenarios"] for r in rows}
+
+    first, team = groups("first"), groups("team")
+    assert first["setpoints", "<1"] == 2 and first["setpoints", ">=1"] == 1
+    assert team["setpoints", "<1"] == 1 and team["setpoints", ">=1"] == 2
+    assert first["nn", "<1"] == first["nn", ">=1"] == 1
+    assert ("nn", "<1") not in team and team["nn", ">=1"] == 2
+    slow = {(r["defender"], r["speed_ratio"]): r for r in headroom_rows(runs, ratio="team")}
+    assert slow["setpoints", ">=1"]["rates"] == {"attacker_v8 (best)": 3 / 4}
+    assert slow["nn", "all"]["route_ceiling"] == 0.5 and slow["nn", "all"]["ceiling"] is None
+    assert slow["setpoints", "all"]["route_ceiling"] == slow["setpoints", "all"]["ceiling"] == 2 / 3
+    main([str(r) for r in runs] + ["--headroom", "--ratio", "team"])
+    out = capsys.readouterr().out
+    assert "| defender | team speed ratio | scenarios | ceiling | route ceiling |" in out
+    assert "| nn | all | 2 | – | 0.500 | 1.000 | 0.750 |" in out  # any; the learner's 3 of 4
+    _headroom_evaluation(tmp_path, "s1", "pure_pursuit", "pure_pursuit", [1] * 5, attackers=2)
+    with pytest.raises(ConfigError, match="pure_pursuit have no team_speed_ratio column"):
+        headroom_rows(runs, ratio="team")
+    headroom_rows(runs)  # the first attacker's ratio needs no such column
+    with pytest.raises(ConfigError, match="--ratio: unknown 'fastest'; valid: first, team"):
+        headroom_rows(runs, ratio="fastest")
+    with pytest.raises(SystemExit):  # one line on stderr, and no table before it
+        main([str(runs[0]), "--headroom", "--ratio", "fastest"])
+    out = capsys.readouterr()
+    assert out.out == "" and out.err.count("\n") == 1 and "valid: first, team" in out.err
 
 
 def test_against_sets_each_policy_against_the_reference_scenario_by_scenario(tmp_path, capsys):

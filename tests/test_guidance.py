@@ -409,6 +409,26 @@ def test_a_slow_attacker_cannot_catch_a_fast_defender_flying_away(tmp_path, writ
     assert rates["slow"] < 0.5 < rates["fast"] == 1.0
 
 
+def test_the_route_ceiling_flies_every_defender_on_its_route(tmp_path, write_small_set):
+    from rlplat.eval.ceiling import route_flown
+
+    scenarios = write_small_set(tmp_path, "scenario.n_test=96")
+    flown = route_flown(scenarios)
+    strategy = scenarios.split("test")["defender_strategy"]
+    nn = strategy[:, 0] == STRATEGIES.index("nn")
+    assert nn.any() and (~nn).any()  # the set itself is untouched: both strategies
+    assert (flown.split("test")["defender_strategy"] == STRATEGIES.index("setpoints")).all()
+    for key in ("attacker_start", "defender_start", "route", "defender_max_speed"):
+        assert torch.equal(flown.split("test")[key], scenarios.split("test")[key]), key
+    n = len(strategy)
+    ceiling = _ceiling(make_env(PLAIN, scenarios=scenarios, num_envs=n, split="test"))
+    route = _ceiling(make_env(PLAIN, scenarios=flown, num_envs=n, split="test"))
+    assert route.defined.all()
+    # A route flyer's path is the same in both sets, so is its bound.
+    torch.testing.assert_close(route.interceptable[~nn], ceiling.interceptable[~nn])
+    assert ceiling.interceptable[nn].isnan().all()
+
+
 # Where learning starts --------------------------------------------------------------------
 
 

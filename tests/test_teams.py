@@ -398,6 +398,12 @@ def test_a_team_run_and_a_lone_run_evaluate_on_the_same_defenders(team_sets, tmp
 
     pair_rows, alone_rows = rows(Path(team) / "eval" / "val-best"), rows(alone.out_dir)
     assert "attacker1_max_speed" in pair_rows[0] and "attacker1_max_speed" not in alone_rows[0]
+    assert "team_speed_ratio" not in alone_rows[0]
+    for r in pair_rows:  # the fastest attacker of the pair over the defender (CSV: 6 digits)
+        fastest = max(float(r["attacker_max_speed"]), float(r["attacker1_max_speed"]))
+        ratio = fastest / float(r["defender_max_speed"])
+        assert float(r["team_speed_ratio"]) == pytest.approx(ratio, rel=1e-5)
+    assert any(r["team_speed_ratio"] != r["speed_ratio"] for r in pair_rows)
     same = ("scenario_id", "route", "defender_strategy", "defender_start_z", "attacker_start_x")
     assert [[r[c] for c in same] for r in pair_rows] == [[r[c] for c in same] for r in alone_rows]
     # A checkpoint flies only the team it was trained in.

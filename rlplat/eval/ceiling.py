@@ -14,10 +14,17 @@ steps (the env also counts a closest approach between steps, so a policy can ver
 capture where the bound, checked at step ends only, says no). It is not defined for defenders
 that react to the attacker (``nn``) nor for episodes that need every one of several
 defenders caught; those scenarios get NaN.
+
+The **route ceiling** is the same computation on :func:`route_flown`, a copy of the set whose
+defenders all fly their routes: for a reacting defender, whether an intercept would exist had
+it kept to its route. That is not a bound (the defender leaves its route only to evade, which
+can also slow it down or turn it towards an attacker), but it separates the scenarios a
+network defender wins by running away along its route from those it wins by evading.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -26,7 +33,7 @@ from torch import Tensor
 from rlplat.envs.dynamics import DroneDynamics
 from rlplat.envs.pursuit import PursuitEnv
 from rlplat.eval.episodes import evaluate
-from rlplat.scenarios import STRATEGIES
+from rlplat.scenarios import STRATEGIES, ScenarioSet
 
 
 @dataclass(frozen=True)
@@ -129,3 +136,16 @@ def _envelope(
         lo.append(torch.stack(low, 1))
         hi.append(torch.stack(high, 1))
     return torch.stack(lo, 2), torch.stack(hi, 2)
+
+
+def route_flown(scenarios: ScenarioSet) -> ScenarioSet:
+    """A copy of ``scenarios`` in which every defender flies its route (strategy ``setpoints``),
+    the rest unchanged: on it :func:`intercept_ceiling` gives the route ceiling."""
+    setpoints = STRATEGIES.index("setpoints")
+    splits = {
+        name: td.clone().set(
+            "defender_strategy", torch.full_like(td["defender_strategy"], setpoints)
+        )
+        for name, td in scenarios.splits.items()
+    }
+    return dataclasses.replace(scenarios, splits=splits)

@@ -145,6 +145,41 @@ def ceiling_table(summaries: list[dict[str, Any]]) -> str | None:
     return "\n".join(lines)
 
 
+def route_ceiling_table(summaries: list[dict[str, Any]]) -> str | None:
+    """Capture rates against the route ceiling (:mod:`rlplat.eval.ceiling`) per defender
+    strategy; None unless the summaries record it for a defender that reacts (the route flyers'
+    route ceiling is their capture ceiling)."""
+    if not summaries or "route_ceiling" not in summaries[0]:
+        return None
+    groups = summaries[0]["by_strategy"]
+    if all(g["route_ceiling"]["scenarios"] == g["ceiling"]["scenarios"] for g in groups.values()):
+        return None
+
+    def cell(stats: dict[str, Any], key: str) -> str:
+        value = stats["route_ceiling"].get(key)
+        return "–" if value is None else f"{value:.3f}"
+
+    first = summaries[0]
+    lines = [
+        "| defender | all | " + " | ".join(groups) + " |",
+        "|---|" + "---|" * (len(groups) + 1),
+        f"| scenarios | {first['route_ceiling']['scenarios']} | "
+        + " | ".join(str(g["route_ceiling"]["scenarios"]) for g in groups.values())
+        + " |",
+        f"| **route ceiling** (an intercept exists on its route) | "
+        f"{cell(first, 'interceptable_rate')} | "
+        + " | ".join(cell(g, "interceptable_rate") for g in groups.values())
+        + " |",
+    ]
+    for s in summaries:
+        lines.append(
+            f"| {policy_label(s)} | {cell(s, 'capture_rate')} | "
+            + " | ".join(cell(s["by_strategy"][name], "capture_rate") for name in groups)
+            + " |"
+        )
+    return "\n".join(lines)
+
+
 def compare(run_dir: str | Path, split: str = "test") -> str:
     """Write ``eval/compare-<split>.{md,csv,png}`` for a run; returns the Markdown table."""
     run_dir = Path(run_dir)
@@ -174,6 +209,15 @@ def compare(run_dir: str | Path, split: str = "test") -> str:
             "route (its path is known in advance): the fraction where an attacker at its maximum "
             "speed per axis, with the dynamics' acceleration limits, can reach the defender at "
             "all, and each policy's capture rate there.\n\n" + ceiling + "\n"
+        )
+    route = route_ceiling_table(summaries)
+    if route is not None:
+        figure += (
+            "\n## Against the route ceiling\n\n"
+            "The same bound with every defender flying its route, as if a network defender "
+            "ignored the attackers: not a bound for a defender that reacts (its evasion can slow "
+            "it down or turn it towards an attacker), but a scenario outside it is one that the "
+            "defender can win by running along its route.\n\n" + route + "\n"
         )
     figure += paired
     atomic_write_text(out / f"compare-{split}.md", header + table + figure)

@@ -99,6 +99,7 @@ def outcome_stats(
     route_fraction: np.ndarray | None = None,
     evasion: np.ndarray | None = None,
     interceptable: np.ndarray | None = None,
+    route_interceptable: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Capture rate with its 95 % Wilson interval and the means of a group of episodes.
 
@@ -108,7 +109,8 @@ def outcome_stats(
     ``evasion_score`` when given. ``interceptable`` (1, 0 or NaN where the bound is not
     defined, see :mod:`rlplat.eval.ceiling`) adds ``ceiling``: over the scenarios the bound
     covers, how many there are, the fraction where an intercept exists, the capture rate, and
-    that capture rate as a fraction of the ceiling.
+    that capture rate as a fraction of the ceiling. ``route_interceptable`` (the route
+    ceiling, defined for reacting defenders too) adds ``route_ceiling`` the same way.
     """
     captured = np.asarray(captured, dtype=bool)
     n, k = int(captured.size), int(captured.sum())
@@ -129,7 +131,11 @@ def outcome_stats(
             for key, v in (("mean_route_fraction", route_fraction), ("evasion_score", evasion))
             if v is not None
         },
-        **({} if interceptable is None else {"ceiling": _ceiling(captured, interceptable)}),
+        **{
+            key: _ceiling(captured, bound)
+            for key, bound in (("ceiling", interceptable), ("route_ceiling", route_interceptable))
+            if bound is not None
+        },
     }
 
 

@@ -8,11 +8,13 @@ ceiling, the capture rate on the scenarios it covers against it. Seeds of one co
 fly the same scenarios, so a scripted baseline's rows repeat the same episodes once per run.
 
 With ``--headroom`` a second table splits the scenarios by defender strategy and speed-ratio
-bin (of the first attacker and defender, as ``episodes.csv`` records them): per group the
-capture ceiling (where it is defined), the fraction of scenarios that at least one episode of
-any policy and run captured ("captured by any": a capture shown possible, not a bound), and
-each policy's pooled capture rate. The gap between a policy and the ceiling or "captured by
-any" is where there is something left to win.
+bin (of the first attacker and defender, as ``episodes.csv`` records them; with ``--ratio
+team``, of a team's fastest attacker and the first defender, its ``team_speed_ratio``): per
+group the capture ceiling (where it is defined), the route ceiling (where the evaluations
+record it: whether an intercept would exist had every defender kept to its route), the
+fraction of scenarios that at least one episode of any policy and run captured ("captured by
+any": a capture shown possible, not a bound), and each policy's pooled capture rate. The gap
+between a policy and the ceiling or "captured by any" is where there is something left to win.
 
 With ``--against POLICY`` (e.g. ``proportional_navigation``) a third table sets every other
 policy against that one scenario by scenario: per scenario each policy's capture fraction over
@@ -111,19 +113,34 @@ def _captured(row: dict[str, str]) -> bool:
     return _flag(row["captured"])
 
 
-def headroom_rows(run_dirs: list[Path], split: str = "test") -> list[dict[str, Any]]:
+def headroom_rows(
+    run_dirs: list[Path], split: str = "test", ratio: str = "first"
+) -> list[dict[str, Any]]:
     """Per group of scenarios (all; each defender strategy; each strategy and speed-ratio bin of
-    the evaluations, by the first attacker and defender), ``scenarios``, ``ceiling`` (None
-    unless every scenario of the group has one), ``any`` (the fraction that some episode
+    the evaluations, by the first attacker and defender, or with ``ratio="team"`` by a team's
+    fastest attacker, its episodes' ``team_speed_ratio``; for one attacker the two are the
+    same), ``scenarios``, ``ceiling`` (None
+    unless every scenario of the group has one), ``route_ceiling`` (the same for the route
+    ceiling, where the evaluations record it), ``any`` (the fraction that some episode
     captured) and ``rates`` (policy -> pooled capture rate).
 
     Every evaluation must fly attackers (a learned or scripted one, not a defender learner's),
     on the same scenario set (its digest), team size, dynamics and bins.
     """
-    return _headroom(_read(run_dirs, split))
+    return _headroom(_read(run_dirs, split), ratio)
 
 
-def _headroom(read: Evaluations) -> list[dict[str, Any]]:
+#: ``--ratio``: which speed ratio bins the headroom: the first attacker's or the team's fastest.
+RATIOS = ("first", "team")
+
+
+def _check_ratio(ratio: str) -> None:
+    if ratio not in RATIOS:
+        raise ConfigError(f"pool --ratio: unknown '{ratio}'; valid: {', '.join(RATIOS)}")
+
+
+def _headroom(read: Evaluations, ratio: str = "first") -> list[dict[str, Any]]:
+    _check_ratio(ratio)
     episodes, _, summaries = read
     _attackers_only(summaries, "--headroom", "the headroom is an attacker's")
     _one_set(summaries, "--headroom")
@@ -132,31 +149,43 @@ def _headroom(read: Evaluations) -> list[dict[str, Any]]:
         raise ConfigError(f"pool --headroom: the evaluations bin differently: {sorted(edges)}")
     (bins,) = edges
     labels = speed_ratio_labels(bins) if bins else []
+    column = "team_speed_ratio" if ratio == "team" and summaries[0].get("attackers", 1) > 1 else ""
     scenarios: dict[str, list[tuple[str, str]]] = {}
     bound: dict[str, bool] = {}  # from the first evaluation that bounds the scenario
+    route_bound: dict[str, bool] = {}  # the same for the route ceiling
     captured: dict[str, bool] = defaultdict(bool)
-    for rows in episodes.values():
+    for label, rows in episodes.items():
+        if column and rows and column not in rows[0]:
+            raise ConfigError(
+                f"pool --ratio team: the episodes of {label} have no {column} column (evaluated "
+                "before it was recorded); evaluate again"
+            )
         for r in rows:
             sid = r["scenario_id"]
             captured[sid] |= _captured(r)
-            if sid not in bound and r.get("interceptable", "") not in ("", None):
-                bound[sid] = _flag(r["interceptable"])
+            for key, known in (("interceptable", bound), ("route_interceptable", route_bound)):
+                if sid not in known and r.get(key, "") not in ("", None):
+                    known[sid] = _flag(r[key])
             if sid in scenarios:
                 continue
             strategy = r.get("defender_strategy", "") or "all"
             groups = [("all", "all"), (strategy, "all")] if strategy != "all" else [("all", "all")]
             if labels:
-                ratio = float(r["speed_ratio"])
-                groups.append((strategy, labels[int(speed_ratio_bin(np.array([ratio]), bins)[0])]))
+                v = float(r[column or "speed_ratio"])
+                groups.append((strategy, labels[int(speed_ratio_bin(np.array([v]), bins)[0])]))
             scenarios[sid] = groups
     members: dict[tuple[str, str], list[str]] = defaultdict(list)
     for sid, groups in scenarios.items():
         for g in groups:
             members[g].append(sid)
+
+    def share(known: dict[str, bool], sids: list[str]) -> float | None:
+        values = [known[s] for s in sids if s in known]
+        return float(np.mean(values)) if len(values) == len(sids) else None
+
     out = []
     for group, sids in members.items():
         inside = set(sids)
-        known = [bound[s] for s in sids if s in bound]
         rates = {}
         for label, rows in episodes.items():
             flown = [_captured(r) for r in rows if r["scenario_id"] in inside]
@@ -165,7 +194,8 @@ def _headroom(read: Evaluations) -> list[dict[str, Any]]:
             "defender": group[0],
             "speed_ratio": group[1],
             "scenarios": len(sids),
-            "ceiling": float(np.mean(known)) if len(known) == len(sids) else None,
+            "ceiling": share(bound, sids),
+            **({"route_ceiling": share(route_bound, sids)} if route_bound else {}),
             "any": float(np.mean([captured[s] for s in sids])),
             "rates": rates,
         })  # fmt: skip
@@ -266,21 +296,26 @@ def paired_markdown(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def headroom_markdown(rows: list[dict[str, Any]]) -> str:
-    """The headroom table as Markdown: one column per policy after the ceiling and "captured by
-    any"."""
+def headroom_markdown(rows: list[dict[str, Any]], ratio: str = "first") -> str:
+    """The headroom table as Markdown: one column per policy after the ceiling, the route
+    ceiling (where recorded) and "captured by any"; ``ratio`` names the speed ratio that binned
+    it."""
     policies = list(rows[0]["rates"]) if rows else []
+    route = bool(rows) and "route_ceiling" in rows[0]
     lines = [
-        "| defender | speed ratio | scenarios | ceiling | captured by any | "
+        f"| defender | {'team speed ratio' if ratio == 'team' else 'speed ratio'} | scenarios "
+        f"| ceiling | {'route ceiling | ' if route else ''}captured by any | "
         + " | ".join(policies)
         + " |",
-        "|---|---|---|---|---|" + "---|" * len(policies),
+        "|---|---|---|---|---|" + "---|" * (len(policies) + route),
     ]
     for r in rows:
-        cells = [num(r["rates"][p]) for p in policies]
+        bounds = [r["ceiling"], *([r["route_ceiling"]] if route else []), r["any"]]
+        cells = [num(v) for v in bounds] + [num(r["rates"][p]) for p in policies]
         lines.append(
-            f"| {r['defender']} | {r['speed_ratio']} | {r['scenarios']} | {num(r['ceiling'])} | "
-            f"{num(r['any'])} | " + " | ".join(cells) + " |"
+            f"| {r['defender']} | {r['speed_ratio']} | {r['scenarios']} | "
+            + " | ".join(cells)
+            + " |"
         )
     return "\n".join(lines)
 
@@ -341,16 +376,23 @@ def main(argv: list[str] | None = None) -> None:
         "fraction some policy and run captured, and each policy",
     )
     parser.add_argument(
+        "--ratio",
+        default="first",
+        help="which speed ratio bins --headroom: first (the first attacker's, default) | team "
+        "(the fastest attacker's of a team)",
+    )
+    parser.add_argument(
         "--against",
         metavar="POLICY",
         help="also set every other policy against this one (e.g. proportional_navigation), "
         "scenario by scenario: the gain with its interval, scenarios gained and lost",
     )
     args = parser.parse_args(argv)
+    _check_ratio(args.ratio)  # before any work
     read = _read(args.run_dirs, args.split)  # once, for every table
     tables = [markdown(_pooled(read))]  # all checked before any output
     if args.headroom:
-        tables.append(headroom_markdown(_headroom(read)))
+        tables.append(headroom_markdown(_headroom(read, args.ratio), args.ratio))
     if args.against:
         tables.append(paired_markdown(_paired(read, args.against)))
     print("\n\n".join(tables))

@@ -35,6 +35,7 @@ def episode_rows(
     routes: torch.Tensor,
     attackers: int | None = None,
     interceptable: torch.Tensor | None = None,
+    route_interceptable: torch.Tensor | None = None,
 ) -> list[dict[str, Any]]:
     """One row per scenario (in split order): its id and parameters, then its outcome.
 
@@ -43,9 +44,12 @@ def episode_rows(
     and ``attacker{i}_max_speed`` per extra attacker i, ``defender{j}_route``,
     ``defender{j}_route_direction``, ``defender{j}_strategy``, ``defender{j}_start_x/y/z`` and
     ``defender{j}_max_speed`` per extra defender j and ``defenders_caught``, after
-    ``speed_ratio``. ``attackers``: how many of each scenario's attackers flew
-    (``env.attackers``; None: all). ``interceptable`` (E,) (see :mod:`rlplat.eval.ceiling`)
-    adds the column ``interceptable``: True, False, or None where the bound is not defined.
+    ``speed_ratio``; when more than one attacker flies, ``team_speed_ratio`` follows
+    ``speed_ratio``: the fastest of them over the first defender. ``attackers``: how many of
+    each scenario's attackers flew (``env.attackers``; None: all). ``interceptable`` (E,) (see
+    :mod:`rlplat.eval.ceiling`) adds the column ``interceptable``: True, False, or None where
+    the bound is not defined; ``route_interceptable`` (E,), the route ceiling, adds the column
+    ``route_interceptable`` the same way.
     """
     sc = {k: v.tolist() for k, v in scenarios.split(split).items()}
     ids = scenarios.ids[split]
@@ -55,16 +59,19 @@ def episode_rows(
     out = {k: getattr(results, k).tolist() for k in keys}
     terms = {k: v.tolist() for k, v in results.term_sums.items()}
     caught_count = results.defender_caught.sum(-1).tolist()
-    if interceptable is not None:
-        bound = [None if math.isnan(x) else bool(x) for x in interceptable.tolist()]
+    bound = _flags(interceptable)
+    route_bound = _flags(route_interceptable)
     rows = []
     for e, i in enumerate(out["scenario_index"]):
         v_a, v_d = sc["attacker_max_speed"][i], sc["defender_max_speed"][i]
         starts_a, starts_d = sc["attacker_start"][i], sc["defender_start"][i]
         routes_d, strategies_d = sc["route"][i], sc["defender_strategy"][i]
         captured = out["captured"][e]
+        flown = len(v_a) if attackers is None else attackers
         extra: dict[str, Any] = {}
-        for a in range(1, len(v_a) if attackers is None else attackers):
+        if flown > 1:
+            extra["team_speed_ratio"] = max(v_a[:flown]) / v_d[0]
+        for a in range(1, flown):
             extra.update(_xyz(f"attacker{a}_start", starts_a[a]))
             extra[f"attacker{a}_max_speed"] = v_a[a]
         for d in range(1, len(v_d)):
@@ -87,7 +94,8 @@ def episode_rows(
             "attacker_max_speed": v_a[0],
             "speed_ratio": v_a[0] / v_d[0],
             **extra,
-            **({} if interceptable is None else {"interceptable": bound[e]}),
+            **({} if bound is None else {"interceptable": bound[e]}),
+            **({} if route_bound is None else {"route_interceptable": route_bound[e]}),
             "captured": captured,
             "grounded": out["grounded"][e],
             "time_to_capture_s": out["time_to_capture"][e] if captured else None,
@@ -101,6 +109,13 @@ def episode_rows(
         }
         rows.append(row)
     return rows
+
+
+def _flags(bound: torch.Tensor | None) -> list[bool | None] | None:
+    """A ceiling's values as column cells: True, False, or None where it is not defined."""
+    if bound is None:
+        return None
+    return [None if math.isnan(x) else bool(x) for x in bound.tolist()]
 
 
 def summarize(rows: list[dict[str, Any]], terms: list[str], edges: list[float]) -> dict:
@@ -119,8 +134,9 @@ def summarize(rows: list[dict[str, Any]], terms: list[str], edges: list[float]) 
         "route_fraction": col("route_fraction"),
         "evasion": col("evasion"),
     }
-    if rows and "interceptable" in rows[0]:
-        columns["interceptable"] = col("interceptable")
+    for key in ("interceptable", "route_interceptable"):
+        if rows and key in rows[0]:
+            columns[key] = col(key)
     routes = sorted({(r["route"], r["route_direction"]) for r in rows})
     strategies = {i: s for i, s in enumerate(STRATEGIES)}
     labels = speed_ratio_labels(edges)

@@ -35,7 +35,7 @@ from rlplat.agents.policies import POLICIES, MeanAction, make_scripted_policy, p
 from rlplat.envs.dynamics import DYNAMICS
 from rlplat.envs.pursuit import ROLES, PursuitEnv
 from rlplat.errors import ConfigError
-from rlplat.eval.ceiling import intercept_ceiling
+from rlplat.eval.ceiling import intercept_ceiling, route_flown
 from rlplat.eval.compare import compare
 from rlplat.eval.episodes import EpisodeResults, evaluate
 from rlplat.eval.report import write_report
@@ -305,8 +305,10 @@ def evaluate_run(
         log.info("%s on %d %s scenarios in %.1f s", name, n, split, wall)
 
         routes = env.routes.cpu()
-        bound = split_ceiling(cfg, env_cfg, env, scenarios, split, device)
-        rows = episode_rows(results, scenarios, split, routes, env.num_attackers, bound)
+        bound, route_bound = split_ceiling(cfg, env_cfg, env, scenarios, split, device)
+        rows = episode_rows(
+            results, scenarios, split, routes, env.num_attackers, bound, route_bound
+        )
         artifact = {}
         if files is not None:  # the torch actor on the same scenarios: which outcomes differ
             reference = evaluate(env, torch_actor)
@@ -401,23 +403,33 @@ def plain_action(cfg: DictConfig) -> DictConfig:
 
 
 def split_ceiling(cfg, env_cfg, env: PursuitEnv, scenarios, split: str, device):
-    """The capture ceiling of the split (:mod:`rlplat.eval.ceiling`), or None where it is not
-    defined: a defender learner, or dynamics that are not separable per axis."""
+    """The capture ceiling and the route ceiling of the split (:mod:`rlplat.eval.ceiling`),
+    each (E,) or None where it is not defined: a defender learner, or dynamics that are not
+    separable per axis."""
     if ROLES[env.learner] != "attacker" or cfg.dynamics.get("name") != "velocity":
-        return None
-    if env_cfg.action.get("name") != "velocity":
-        env_cfg = plain_action(cfg)
-        env = build_env(env_cfg, scenarios=scenarios, split=split, num_envs=env.batch_size[0],
-                        device=device, scenario_order="sequential",
-                        attackers=env.num_attackers)  # fmt: skip
-    dynamics = build_component(
-        DYNAMICS, "dynamics", OmegaConf.to_container(cfg.dynamics, resolve=True),
-        num_envs=env.batch_size[0], num_drones=2, device=device,
-    )  # fmt: skip
-    ceiling = intercept_ceiling(env, dynamics)
+        return None, None
+    n, attackers = env.batch_size[0], env.num_attackers
+
+    def ceiling_of(scenario_set, env=None):
+        if env is None or env_cfg.action.get("name") != "velocity":
+            env = build_env(plain_action(cfg), scenarios=scenario_set, split=split, num_envs=n,
+                            device=device, scenario_order="sequential",
+                            attackers=attackers)  # fmt: skip
+        dynamics = build_component(
+            DYNAMICS, "dynamics", OmegaConf.to_container(cfg.dynamics, resolve=True),
+            num_envs=n, num_drones=2, device=device,
+        )  # fmt: skip
+        return intercept_ceiling(env, dynamics)
+
+    ceiling = ceiling_of(scenarios, env)
     log.info("capture ceiling on %s: %.3f of %d scenarios with a route-flying defender",
              split, ceiling.rate, int(ceiling.defined.sum()))  # fmt: skip
-    return ceiling.interceptable
+    if bool(ceiling.defined.all()) or env.num_defenders > 1:
+        return ceiling.interceptable, ceiling.interceptable  # nothing reacts, or no ceiling
+    route = ceiling_of(route_flown(scenarios))
+    log.info("route ceiling on %s: %.3f of %d scenarios, every defender flying its route",
+             split, route.rate, int(route.defined.sum()))  # fmt: skip
+    return ceiling.interceptable, route.interceptable
 
 
 def evaluate_from_config(cfg: DictConfig) -> list[str]:
