@@ -119,30 +119,10 @@ def ceiling_table(summaries: list[dict[str, Any]]) -> str | None:
     if not summaries or "ceiling" not in summaries[0]:
         return None
     bins = [b for b, v in summaries[0]["by_speed_ratio"].items() if v["ceiling"]["scenarios"]]
-
-    def cell(stats: dict[str, Any], key: str) -> str:
-        value = stats["ceiling"].get(key)
-        return "–" if value is None else f"{value:.3f}"
-
-    first = summaries[0]
-    lines = [
-        "| attacker / defender max speed | all | " + " | ".join(bins) + " |",
-        "|---|" + "---|" * (len(bins) + 1),
-        f"| scenarios | {first['ceiling']['scenarios']} | "
-        + " | ".join(str(first["by_speed_ratio"][b]["ceiling"]["scenarios"]) for b in bins)
-        + " |",
-        f"| **ceiling** (an intercept exists) | {cell(first, 'interceptable_rate')} | "
-        + " | ".join(cell(first["by_speed_ratio"][b], "interceptable_rate") for b in bins)
-        + " |",
-    ]
-    for s in summaries:
-        name = policy_label(s)
-        lines.append(
-            f"| {name} | {cell(s, 'capture_rate')} | "
-            + " | ".join(cell(s["by_speed_ratio"][b], "capture_rate") for b in bins)
-            + " |"
-        )
-    return "\n".join(lines)
+    return _bound_table(
+        summaries, "ceiling", "by_speed_ratio", bins,
+        "attacker / defender max speed", "**ceiling** (an intercept exists)",
+    )  # fmt: skip
 
 
 def route_ceiling_table(summaries: list[dict[str, Any]]) -> str | None:
@@ -154,27 +134,37 @@ def route_ceiling_table(summaries: list[dict[str, Any]]) -> str | None:
     groups = summaries[0]["by_strategy"]
     if all(g["route_ceiling"]["scenarios"] == g["ceiling"]["scenarios"] for g in groups.values()):
         return None
+    return _bound_table(
+        summaries, "route_ceiling", "by_strategy", list(groups),
+        "defender", "**route ceiling** (an intercept exists on its route)",
+    )  # fmt: skip
+
+
+def _bound_table(
+    summaries: list[dict[str, Any]], block: str, by: str, groups: list[str], head: str, label: str
+) -> str:
+    """One column for all scenarios and one per group of the summaries' ``by`` breakdown: the
+    scenarios the ``block`` bound covers, the bound, then each policy's capture rate there."""
 
     def cell(stats: dict[str, Any], key: str) -> str:
-        value = stats["route_ceiling"].get(key)
+        value = stats[block].get(key)
         return "–" if value is None else f"{value:.3f}"
 
     first = summaries[0]
     lines = [
-        "| defender | all | " + " | ".join(groups) + " |",
+        f"| {head} | all | " + " | ".join(groups) + " |",
         "|---|" + "---|" * (len(groups) + 1),
-        f"| scenarios | {first['route_ceiling']['scenarios']} | "
-        + " | ".join(str(g["route_ceiling"]["scenarios"]) for g in groups.values())
+        f"| scenarios | {first[block]['scenarios']} | "
+        + " | ".join(str(first[by][g][block]["scenarios"]) for g in groups)
         + " |",
-        f"| **route ceiling** (an intercept exists on its route) | "
-        f"{cell(first, 'interceptable_rate')} | "
-        + " | ".join(cell(g, "interceptable_rate") for g in groups.values())
+        f"| {label} | {cell(first, 'interceptable_rate')} | "
+        + " | ".join(cell(first[by][g], "interceptable_rate") for g in groups)
         + " |",
     ]
     for s in summaries:
         lines.append(
             f"| {policy_label(s)} | {cell(s, 'capture_rate')} | "
-            + " | ".join(cell(s["by_strategy"][name], "capture_rate") for name in groups)
+            + " | ".join(cell(s[by][g], "capture_rate") for g in groups)
             + " |"
         )
     return "\n".join(lines)
