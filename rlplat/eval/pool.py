@@ -119,10 +119,10 @@ def headroom_rows(
     """Per group of scenarios (all; each defender strategy; each strategy and speed-ratio bin of
     the evaluations, by the first attacker and defender, or with ``ratio="team"`` by a team's
     fastest attacker, its episodes' ``team_speed_ratio``; for one attacker the two are the
-    same), ``scenarios``, ``ceiling`` (None
-    unless every scenario of the group has one), ``route_ceiling`` (the same for the route
-    ceiling, where the evaluations record it), ``any`` (the fraction that some episode
-    captured) and ``rates`` (policy -> pooled capture rate).
+    same), ``scenarios``, ``ceiling`` (None unless every scenario of the group has one),
+    ``route_ceiling`` (the same for the route ceiling, where the evaluations record it),
+    ``any`` (the fraction that some episode captured) and ``rates`` (policy -> pooled capture
+    rate).
 
     Every evaluation must fly attackers (a learned or scripted one, not a defender learner's),
     on the same scenario set (its digest), team size, dynamics and bins.
