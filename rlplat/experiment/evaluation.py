@@ -408,25 +408,27 @@ def split_ceiling(cfg, env_cfg, env: PursuitEnv, scenarios, split: str, device):
     separable per axis."""
     if ROLES[env.learner] != "attacker" or cfg.dynamics.get("name") != "velocity":
         return None, None
-    n, attackers = env.batch_size[0], env.num_attackers
+    n = env.batch_size[0]
 
-    def ceiling_of(scenario_set, env=None):
-        if env is None or env_cfg.action.get("name") != "velocity":
-            env = build_env(plain_action(cfg), scenarios=scenario_set, split=split, num_envs=n,
-                            device=device, scenario_order="sequential",
-                            attackers=attackers)  # fmt: skip
+    def plain_env(scenario_set) -> PursuitEnv:  # the split flown with velocity commands
+        return build_env(plain_action(cfg), scenarios=scenario_set, split=split, num_envs=n,
+                         device=device, scenario_order="sequential",
+                         attackers=env.num_attackers)  # fmt: skip
+
+    def ceiling_of(flown: PursuitEnv):
         dynamics = build_component(
             DYNAMICS, "dynamics", OmegaConf.to_container(cfg.dynamics, resolve=True),
             num_envs=n, num_drones=2, device=device,
         )  # fmt: skip
-        return intercept_ceiling(env, dynamics)
+        return intercept_ceiling(flown, dynamics)
 
-    ceiling = ceiling_of(scenarios, env)
+    plain = env_cfg.action.get("name") == "velocity"
+    ceiling = ceiling_of(env if plain else plain_env(scenarios))
     log.info("capture ceiling on %s: %.3f of %d scenarios with a route-flying defender",
              split, ceiling.rate, int(ceiling.defined.sum()))  # fmt: skip
     if bool(ceiling.defined.all()) or env.num_defenders > 1:
         return ceiling.interceptable, ceiling.interceptable  # nothing reacts, or no ceiling
-    route = ceiling_of(route_flown(scenarios))
+    route = ceiling_of(plain_env(route_flown(scenarios)))
     log.info("route ceiling on %s: %.3f of %d scenarios, every defender flying its route",
              split, route.rate, int(route.defined.sum()))  # fmt: skip
     return ceiling.interceptable, route.interceptable
