@@ -1,5 +1,6 @@
 """Several drones: k attackers and m defenders in one env, a shared policy per learning role."""
 
+import inspect
 import itertools
 from pathlib import Path
 
@@ -11,7 +12,7 @@ from torchrl.envs.utils import check_env_specs
 from rlplat import make_env
 from rlplat.agents.policies import make_scripted_policy
 from rlplat.agents.transitions import agent_rows
-from rlplat.envs.components import DroneView, sight_margin
+from rlplat.envs.components import OBSERVATIONS, DroneView, sight_margin
 from rlplat.envs.kinematics import nearest, targets
 from rlplat.errors import ConfigError
 from rlplat.eval.episodes import evaluate
@@ -411,6 +412,79 @@ def test_a_team_run_and_a_lone_run_evaluate_on_the_same_defenders(team_sets, tmp
         evaluate_run(team, attackers=1, out_dir=tmp_path / "f", **kwargs)
     with pytest.raises(ConfigError, match=r"trained with attackers=1, this evaluation flies"):
         evaluate_run(lone, scenarios_dir=team_sets[2, 1].path, out_dir=tmp_path / "g", **kwargs)
+    # Only a checkpoint trained alone flies each seat of a team.
+    with pytest.raises(ConfigError, match=r"^lone_in_team: .*trained with attackers=2, this"):
+        evaluate_run(team, lone_in_team=True, out_dir=tmp_path / "h", **kwargs)
+
+
+@pytest.mark.parametrize("name", sorted(OBSERVATIONS))
+@pytest.mark.parametrize(("opponents", "mates"), [(1, 1), (1, 2), (2, 1)])
+def test_a_team_observation_holds_the_lone_one(name, opponents, mates):
+    # lone_features picks, from a team drone's observation, exactly the features the same
+    # observation has without team-mates, in its order (sight_margin, a team-only feature, too).
+    cls = OBSERVATIONS[name]
+    extra = {"team_sight": True} if "team_sight" in inspect.signature(cls).parameters else {}
+    team = cls(opponents=opponents, mates=mates, in_play=opponents > 1, **extra)
+    lone = cls(opponents=opponents, mates=0, in_play=opponents > 1, **extra)
+    picked = team.lone_features()
+    assert [team.features()[i] for i in picked] == lone.features()
+    assert len(picked) == lone.dim < team.dim
+    if extra:
+        assert "sight_margin" in [f["name"] for f in team.features()]
+
+
+def test_a_lone_checkpoint_flies_each_seat_of_a_team(team_sets, tmp_path, tiny_run):
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from rlplat.agents.checkpoint import actor_from_state, load_checkpoint
+    from rlplat.agents.export import observation_key
+    from rlplat.experiment.evaluation import evaluate_run, load_run_config
+    from rlplat.experiment.factory import build_env
+
+    lone = tiny_run(team_sets[1, 1], tmp_path / "1v1")["run_dir"]
+    state = load_checkpoint(Path(lone) / "checkpoints" / "best.pt")
+    torch.manual_seed(0)  # a few updates leave the actor near its zero start: move it off
+    state["actor"] = {k: v + torch.randn_like(v) for k, v in state["actor"].items()}
+    env = build_env(load_run_config(lone), scenarios=team_sets[2, 1], split="val", num_envs=5)
+    td = env.reset()
+    features = env.obs_fn.lone_features()
+    seats = actor_from_state(state, env.drone_action_spec, group=env.group, features=features)
+    alone = actor_from_state(state, env.drone_action_spec)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        actions = seats(td.clone())[env.action_key]  # (5, 2, A)
+        for seat in range(2):  # each seat: the lone network on its own view, team-mate unseen
+            obs = td[observation_key(env.group)][:, seat, features]
+            single = alone(TensorDict({"observation": obs}, [5]))["action"]
+            assert torch.equal(actions[:, seat], single)
+    assert not torch.equal(actions[:, 0], actions[:, 1])
+    env.close()
+
+    kwargs = dict(plots=False, split="val", scenarios_dir=team_sets[2, 1].path)
+    ev = evaluate_run(lone, lone_in_team=True, out_dir=tmp_path / "team", **kwargs)
+    assert ev.summary["attackers"] == 2 and ev.summary["lone_in_team"] is True
+    assert "team_speed_ratio" in ev.rows[0]
+    first = evaluate_run(lone, attackers=1, out_dir=tmp_path / "first", **kwargs)
+    assert first.summary["lone_in_team"] is False
+    with pytest.raises(ConfigError, match=r"^lone_in_team: .*this evaluation flies attackers=1$"):
+        evaluate_run(lone, lone_in_team=True, attackers=1, out_dir=tmp_path / "x", **kwargs)
+
+
+def test_an_artifact_flies_a_seat_on_the_lone_features():
+    from rlplat.agents.native import artifact_module
+
+    class Rows:  # a numpy policy as the C and ONNX runners are: rows in, rows out
+        action_dim = 2
+
+        def __call__(self, x):
+            self.seen = x.copy()
+            return x[:, :2] * 10
+
+    runner = Rows()
+    module = artifact_module(runner, ("attacker", "observation"), ("attacker", "action"), [4, 0, 2])
+    obs = torch.arange(2 * 3 * 5, dtype=torch.float32).reshape(2, 3, 5)
+    td = module(TensorDict({("attacker", "observation"): obs}, [2]))
+    assert runner.seen.shape == (6, 3)
+    assert torch.equal(td["attacker", "action"], obs[..., [4, 0]] * 10)
 
 
 def test_a_team_trained_defender_network_is_refused_for_scripted_defenders(

@@ -5,14 +5,16 @@ from __future__ import annotations
 import io
 import logging
 import random
+from collections.abc import Sequence
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from torch import nn
 
-from rlplat.agents.sac import NetSpec, actor_body, make_actor
+from rlplat.agents.sac import NetSpec, SelectFeatures, actor_body, make_actor
 from rlplat.errors import ConfigError
 from rlplat.io import atomic_write_bytes
 
@@ -107,12 +109,18 @@ def actor_from_state(
     action_spec,
     device: torch.device | str = "cpu",
     group: str | None = None,
+    features: Sequence[int] | None = None,
 ):
     """The actor of a loaded checkpoint (see :func:`load_checkpoint`); with ``group``, reading
-    and writing that group's entries (a team flying the shared network)."""
+    and writing that group's entries (a team flying the shared network); with ``features``,
+    reading only those features of the observation (a network trained alone flying each
+    drone of a team: the observation's ``lone_features``)."""
     net = NetSpec(**{k: tuple(v) if isinstance(v, list) else v for k, v in state["net"].items()})
     actor = make_actor(net, action_spec, device)
     actor.load_state_dict(state["actor"])
-    if group is None:
+    if group is None and features is None:
         return actor
-    return make_actor(net, action_spec, device, group=group, body=actor_body(actor))
+    body = actor_body(actor)
+    if features is not None:
+        body = nn.Sequential(SelectFeatures(features, device), body)
+    return make_actor(net, action_spec, device, group=group, body=body)

@@ -20,7 +20,7 @@ import shutil
 import subprocess
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +29,7 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import Tensor, nn
 
+from rlplat.agents.sac import SelectFeatures
 from rlplat.errors import ConfigError
 
 #: Flags of every build: optimised, strict C99, no fused multiply-adds or other math shortcuts
@@ -281,10 +282,14 @@ class _Rows(nn.Module):
 
 
 def artifact_module(
-    policy: CPolicy | OnnxPolicy, obs_key: Any, action_key: Any
+    policy: CPolicy | OnnxPolicy,
+    obs_key: Any,
+    action_key: Any,
+    features: Sequence[int] | None = None,
 ) -> TensorDictModule:
     """An artifact as a policy the evaluator flies: reads the env's ``obs_key`` (N, obs_dim) or
-    a team's (N, K, obs_dim), writes ``action_key`` in [-1, 1]."""
-    return TensorDictModule(
-        _Rows(policy, policy.action_dim), in_keys=[obs_key], out_keys=[action_key]
-    )
+    a team's (N, K, obs_dim), writes ``action_key`` in [-1, 1]; with ``features``, feeds the
+    artifact only those features (an artifact trained alone flying each drone of a team)."""
+    rows = _Rows(policy, policy.action_dim)
+    module = rows if features is None else nn.Sequential(SelectFeatures(features), rows)
+    return TensorDictModule(module, in_keys=[obs_key], out_keys=[action_key])

@@ -66,6 +66,18 @@ class Scaled(nn.Module):
         return self.body(torch.cat([observation * self.inv_scale, *rest], -1))
 
 
+class SelectFeatures(nn.Module):
+    """``observation[..., features]``: the features a network was trained on, taken from a
+    larger observation (a policy trained alone flying a seat of a team)."""
+
+    def __init__(self, features: Sequence[int], device=None) -> None:
+        super().__init__()
+        self.register_buffer("features", torch.tensor(list(features), device=device))
+
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        return observation.index_select(-1, self.features)
+
+
 def make_actor(
     net: NetSpec,
     action_spec: TensorSpec,

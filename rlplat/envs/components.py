@@ -81,6 +81,9 @@ def inside_ellipsoid(rel: Tensor, semi_axes: Tensor) -> Tensor:
 
 # Observations ----------------------------------------------------------------------------
 
+#: Own features an observation has only in a team (they compare the drone with its team-mates).
+TEAM_ONLY = frozenset({"sight_margin"})
+
 
 class _Observation:
     """Base of the observations: ``dim`` features, each with a typical magnitude in ``scale``.
@@ -176,6 +179,19 @@ class _Observation:
                 vector = f"({name})" if " " in name else name
                 out += [{"name": vector + axis, "unit": unit} for axis in (".x", ".y", ".z")]
         return [{**f, "scale": s} for f, s in zip(out, self.scale, strict=True)]
+
+    def lone_features(self) -> list[int]:
+        """Indices of the features the same observation has for a drone without team-mates, in
+        its order: the own features but those seen only in a team (``TEAM_ONLY``), then every
+        opponent's block. A policy trained alone flies a seat of a team on these."""
+        sizes = {"p": 3, "v": 3, "a": 3, "w": 3, "s": 1, "t": 1, "e": 1, "d": 1, "f": 1}
+        kept, at = [], 0
+        for name, kind in zip(self.own_names, self.own_layout, strict=True):
+            if name not in TEAM_ONLY:
+                kept += range(at, at + sizes[kind])
+            at += sizes[kind]
+        block = sum(sizes[kind] for kind in self.other_layout) + (1 if self.in_play else 0)
+        return kept + list(range(at, at + block * self.opponents))
 
     def __call__(self, view: DroneView) -> Tensor:
         """The observation (*B, dim) float32."""

@@ -126,32 +126,59 @@ def artifact_files(policy: str, run_dir: Path, ckpt: str, path: Path) -> dict[st
     return files
 
 
-def artifact_policy(policy: str, files: dict[str, bytes], state, env: PursuitEnv, compiler: str):
-    """The exported artifact as a policy of ``env``'s learners (one C call per drone)."""
+def artifact_policy(
+    policy: str,
+    files: dict[str, bytes],
+    state,
+    env: PursuitEnv,
+    compiler: str,
+    features: Sequence[int] | None = None,
+):
+    """The exported artifact as a policy of ``env``'s learners (one C call per drone); with
+    ``features``, fed only those features of each drone's observation."""
     dims = state["net"]["obs_dim"], state["net"]["action_dim"]
     if policy == "onnx":
         runner = OnnxPolicy(files["policy.onnx"], *dims)
     else:
         header, source = files["policy.h"].decode(), files["policy.c"].decode()
         runner, _ = build_library(header, source, *dims, compiler=compiler)
-    return artifact_module(runner, observation_key(env.group), env.action_key)
+    return artifact_module(runner, observation_key(env.group), env.action_key, features)
 
 
-def check_policy_fits(state: dict[str, Any], cfg: DictConfig, env: PursuitEnv, path) -> None:
+def check_policy_fits(
+    state: dict[str, Any], cfg: DictConfig, env: PursuitEnv, path, lone_in_team: bool = False
+) -> list[int] | None:
     """Refuse a checkpoint whose team sizes, network sizes or drone interface differ from the
     env it would fly in (the run's config, on the scenarios and attackers asked for), or
-    that was trained on another defender's route path than the env's meeting point uses."""
+    that was trained on another defender's route path than the env's meeting point uses.
+
+    With ``lone_in_team`` the checkpoint must have been trained alone (one drone of the
+    learning role) and the env must fly a team of that role against as many opponents; each
+    drone then flies it on its observation's ``lone_features``, which this returns (None
+    otherwise)."""
     check_route_path(state, env, path, "ckpt")
     interface = saved_interface(state)
     interface.pop("route_path", None)
-    for key, value in (("attackers", env.num_attackers), ("defenders", env.num_defenders)):
+    counts = {"attackers": env.num_attackers, "defenders": env.num_defenders}
+    learners = "attackers" if ROLES[env.learner] == "attacker" else "defenders"
+    if lone_in_team:
+        if interface[learners] != 1 or counts[learners] < 2:
+            raise ConfigError(
+                f"lone_in_team: flies a checkpoint trained with one of the {learners} in each "
+                f"seat of a team; {path} was trained with {learners}={interface[learners]}, "
+                f"this evaluation flies {learners}={counts[learners]}"
+            )
+        counts[learners] = 1  # the team's size is checked; each seat flies alone
+    for key, value in counts.items():
         saved = interface.pop(key)
         if saved != value:
             raise ConfigError(
                 f"ckpt: {path} was trained with {key}={saved}, this evaluation flies "
                 f"{key}={value} (scenarios_dir, attackers)"
             )
-    sizes = {"obs_dim": env.obs_fn.dim, "action_dim": env.action_fn.dim}
+    features = env.obs_fn.lone_features() if lone_in_team else None
+    obs_dim = env.obs_fn.dim if features is None else len(features)
+    sizes = {"obs_dim": obs_dim, "action_dim": env.action_fn.dim}
     for key, value in sizes.items():
         if state["net"][key] != value:
             raise ConfigError(
@@ -163,6 +190,7 @@ def check_policy_fits(state: dict[str, Any], cfg: DictConfig, env: PursuitEnv, p
         value = OmegaConf.select(cfg, key)
         if saved != value:
             raise ConfigError(f"ckpt: {path} was trained with {key}={saved}, the run has {value}")
+    return features
 
 
 def check_scenarios(
@@ -202,6 +230,7 @@ def evaluate_run(
     compiler: str = "cc",
     dynamics: Mapping[str, Any] | None = None,
     ensemble: Sequence[str | Path] = (),
+    lone_in_team: bool = False,
 ) -> Evaluation:
     """Replay every scenario of ``split`` once, deterministically, with the run's policy.
 
@@ -228,6 +257,10 @@ def evaluate_run(
             components); their ``ckpt`` checkpoints and ``run_dir``'s fly together, the mean
             of their deterministic actions (:class:`rlplat.agents.policies.MeanAction`);
             ``policy=checkpoint`` only. The name gets ``-ensemble<size>``.
+        lone_in_team: a checkpoint (or its export) trained with one drone of the learning
+            role flies every drone of a larger team of that role, each on its own
+            observation without its team-mates (``lone_features``): a team that does not
+            coordinate. A scripted policy flies the team as always.
     """
     # Everything is checked before any work starts.
     run_dir = Path(run_dir)
@@ -282,19 +315,23 @@ def evaluate_run(
     )  # fmt: skip
     try:
         if state is not None:
-            check_policy_fits(state, cfg, env, path)
-            actor = actor_from_state(state, env.drone_action_spec, device, env.group)
+            features = check_policy_fits(state, cfg, env, path, lone_in_team)
+            if features is not None:
+                log.info("each of the %d %ss flies %s, trained alone, blind to its team-mates",
+                         env.team_size, ROLES[env.learner], path)  # fmt: skip
+            actor = actor_from_state(state, env.drone_action_spec, device, env.group, features)
             if members:
                 actors = [actor]
                 for member_path, member_cfg in members:
                     member = load_checkpoint(member_path)
-                    check_policy_fits(member, member_cfg, env, member_path)
+                    check_policy_fits(member, member_cfg, env, member_path, lone_in_team)
                     actors.append(
-                        actor_from_state(member, env.drone_action_spec, device, env.group)
+                        actor_from_state(member, env.drone_action_spec, device, env.group, features)
                     )
                 actor = MeanAction(actors, env.action_key)
             if files is not None:
-                torch_actor, actor = actor, artifact_policy(policy, files, state, env, compiler)
+                torch_actor = actor
+                actor = artifact_policy(policy, files, state, env, compiler, features)
         else:
             actor = make_scripted_policy(policy, env)
 
@@ -337,6 +374,7 @@ def evaluate_run(
         "name": name,
         "checkpoint": str(path) if path else None,
         "ensemble": [str(p) for p, _ in members],
+        "lone_in_team": state is not None and lone_in_team,
         "split": split,
         "run_dir": str(run_dir),
         "drone": cfg.drone.name,
@@ -451,6 +489,7 @@ def evaluate_from_config(cfg: DictConfig) -> list[str]:
         "plots": bool(cfg.plots),
         "compiler": cfg.compiler,
         "dynamics": cfg.get("dynamics"),
+        "lone_in_team": bool(cfg.lone_in_team),
     }
     if cfg.threads is not None:
         torch.set_num_threads(cfg.threads)

@@ -279,6 +279,7 @@ EVALUATE_RULES: dict[str, Rule] = {
     "strict_scenarios": flag,
     "scenarios_dir": Text(null=True),
     "attackers": Num(integer=True, ge=1, null=True),
+    "lone_in_team": flag,
     "out_dir": Text(null=True),
     "device": device,
     "threads": THREADS,
