@@ -418,19 +418,26 @@ def test_a_team_run_and_a_lone_run_evaluate_on_the_same_defenders(team_sets, tmp
 
 
 @pytest.mark.parametrize("name", sorted(OBSERVATIONS))
-@pytest.mark.parametrize(("opponents", "mates"), [(1, 1), (1, 2), (2, 1)])
-def test_a_team_observation_holds_the_lone_one(name, opponents, mates):
+@pytest.mark.parametrize(
+    ("opponents", "mates", "team_flags", "lone_flags"),
+    # (1, 1, True, False): a defender of two, whose flags come with its team-mate
+    [(1, 1, False, False), (1, 2, False, False), (2, 1, True, True), (1, 1, True, False)],
+)
+def test_a_team_observation_holds_the_lone_one(name, opponents, mates, team_flags, lone_flags):
     # lone_features picks, from a team drone's observation, exactly the features the same
     # observation has without team-mates, in its order (sight_margin, a team-only feature, too).
     cls = OBSERVATIONS[name]
     extra = {"team_sight": True} if "team_sight" in inspect.signature(cls).parameters else {}
-    team = cls(opponents=opponents, mates=mates, in_play=opponents > 1, **extra)
-    lone = cls(opponents=opponents, mates=0, in_play=opponents > 1, **extra)
-    picked = team.lone_features()
+    team = cls(opponents=opponents, mates=mates, in_play=team_flags, **extra)
+    lone = cls(opponents=opponents, mates=0, in_play=lone_flags, **extra)
+    picked = team.lone_features(lone_flags)
     assert [team.features()[i] for i in picked] == lone.features()
     assert len(picked) == lone.dim < team.dim
     if extra:
         assert "sight_margin" in [f["name"] for f in team.features()]
+    if not team_flags:
+        with pytest.raises(ValueError, match="no in-play flags"):
+            team.lone_features(True)
 
 
 def test_a_lone_checkpoint_flies_each_seat_of_a_team(team_sets, tmp_path, tiny_run):
@@ -467,6 +474,12 @@ def test_a_lone_checkpoint_flies_each_seat_of_a_team(team_sets, tmp_path, tiny_r
     assert first.summary["lone_in_team"] is False
     with pytest.raises(ConfigError, match=r"^lone_in_team: .*this evaluation flies attackers=1$"):
         evaluate_run(lone, lone_in_team=True, attackers=1, out_dir=tmp_path / "x", **kwargs)
+
+    # A lone defender in each seat of a pair (its observation has no in-play flags, the pair's has).
+    guard = tiny_run(team_sets[1, 1], tmp_path / "d1", "drone=defender_v1")["run_dir"]
+    kwargs["scenarios_dir"] = team_sets[1, 2].path
+    pair = evaluate_run(guard, lone_in_team=True, out_dir=tmp_path / "pair", **kwargs).summary
+    assert (pair["defenders"], pair["lone_in_team"]) == (2, True)
 
 
 def test_an_artifact_flies_a_seat_on_the_lone_features():

@@ -180,18 +180,27 @@ class _Observation:
                 out += [{"name": vector + axis, "unit": unit} for axis in (".x", ".y", ".z")]
         return [{**f, "scale": s} for f, s in zip(out, self.scale, strict=True)]
 
-    def lone_features(self) -> list[int]:
+    def lone_features(self, in_play: bool | None = None) -> list[int]:
         """Indices of the features the same observation has for a drone without team-mates, in
         its order: the own features but those seen only in a team (``TEAM_ONLY``), then every
-        opponent's block. A policy trained alone flies a seat of a team on these."""
+        opponent's block, with its in-play flag where the lone observation has one
+        (``in_play``; None: where this one has). A policy trained alone flies a seat of a
+        team on these."""
+        in_play = self.in_play if in_play is None else in_play
+        if in_play and not self.in_play:
+            raise ValueError("lone_features: this observation has no in-play flags to give")
         sizes = {"p": 3, "v": 3, "a": 3, "w": 3, "s": 1, "t": 1, "e": 1, "d": 1, "f": 1}
         kept, at = [], 0
         for name, kind in zip(self.own_names, self.own_layout, strict=True):
             if name not in TEAM_ONLY:
                 kept += range(at, at + sizes[kind])
             at += sizes[kind]
-        block = sum(sizes[kind] for kind in self.other_layout) + (1 if self.in_play else 0)
-        return kept + list(range(at, at + block * self.opponents))
+        state = sum(sizes[kind] for kind in self.other_layout)
+        block = state + (1 if self.in_play else 0)
+        for _ in range(self.opponents):
+            kept += range(at, at + (block if in_play else state))
+            at += block
+        return kept
 
     def __call__(self, view: DroneView) -> Tensor:
         """The observation (*B, dim) float32."""

@@ -161,6 +161,7 @@ def check_policy_fits(
     interface.pop("route_path", None)
     counts = {"attackers": env.num_attackers, "defenders": env.num_defenders}
     learners = "attackers" if ROLES[env.learner] == "attacker" else "defenders"
+    saved_defenders = interface["defenders"]
     if lone_in_team:
         if interface[learners] != 1 or counts[learners] < 2:
             raise ConfigError(
@@ -176,7 +177,9 @@ def check_policy_fits(
                 f"ckpt: {path} was trained with {key}={saved}, this evaluation flies "
                 f"{key}={value} (scenarios_dir, attackers)"
             )
-    features = env.obs_fn.lone_features() if lone_in_team else None
+    # In-play flags come with more than one defender (caught one by one): a lone defender's
+    # observation has none, a lone attacker's against two defenders has them.
+    features = env.obs_fn.lone_features(saved_defenders > 1) if lone_in_team else None
     obs_dim = env.obs_fn.dim if features is None else len(features)
     sizes = {"obs_dim": obs_dim, "action_dim": env.action_fn.dim}
     for key, value in sizes.items():
