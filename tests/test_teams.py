@@ -410,7 +410,8 @@ def test_a_team_run_and_a_lone_run_evaluate_on_the_same_defenders(team_sets, tmp
     # A checkpoint flies only the team it was trained in.
     with pytest.raises(ConfigError, match=r"trained with attackers=2, this evaluation flies"):
         evaluate_run(team, attackers=1, out_dir=tmp_path / "f", **kwargs)
-    with pytest.raises(ConfigError, match=r"trained with attackers=1, this evaluation flies"):
+    refused = r"trained with attackers=1, this evaluation flies .*lone_in_team=true flies it"
+    with pytest.raises(ConfigError, match=refused):
         evaluate_run(lone, scenarios_dir=team_sets[2, 1].path, out_dir=tmp_path / "g", **kwargs)
     # Only a checkpoint trained alone flies each seat of a team.
     with pytest.raises(ConfigError, match=r"^lone_in_team: .*trained with attackers=2, this"):

@@ -74,8 +74,8 @@ class SelectFeatures(nn.Module):
         super().__init__()
         self.register_buffer("features", torch.tensor(list(features), device=device))
 
-    def forward(self, observation: torch.Tensor) -> torch.Tensor:
-        return observation.index_select(-1, self.features)
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:  # an artifact's is on the CPU
+        return observation.index_select(-1, self.features.to(observation.device))
 
 
 def make_actor(

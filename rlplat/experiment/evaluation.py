@@ -173,9 +173,11 @@ def check_policy_fits(
     for key, value in counts.items():
         saved = interface.pop(key)
         if saved != value:
+            lone = key == learners and saved == 1
+            hint = "; lone_in_team=true flies it in each seat" if lone else ""
             raise ConfigError(
                 f"ckpt: {path} was trained with {key}={saved}, this evaluation flies "
-                f"{key}={value} (scenarios_dir, attackers)"
+                f"{key}={value} (scenarios_dir, attackers{hint})"
             )
     # In-play flags come with more than one defender (caught one by one): a lone defender's
     # observation has none, a lone attacker's against two defenders has them.
