@@ -127,6 +127,7 @@ def headroom_rows(
     Every evaluation must fly attackers (a learned or scripted one, not a defender learner's),
     on the same scenario set (its digest), team size, dynamics and bins.
     """
+    _check_ratio(ratio)  # before any work
     return _headroom(_read(run_dirs, split), ratio)
 
 
@@ -140,7 +141,6 @@ def _check_ratio(ratio: str) -> None:
 
 
 def _headroom(read: Evaluations, ratio: str = "first") -> list[dict[str, Any]]:
-    _check_ratio(ratio)
     episodes, _, summaries = read
     _attackers_only(summaries, "--headroom", "the headroom is an attacker's")
     _one_set(summaries, "--headroom")
