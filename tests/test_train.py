@@ -69,6 +69,32 @@ def test_component_swaps_train(scenarios, tmp_path, overrides, tiny_run):
     assert state["config"]["drone"]["name"] == drone
 
 
+def test_a_compiled_run_is_tested_and_evaluated_on_the_eager_step(
+    scenarios, tmp_path, tiny_run, monkeypatch
+):
+    """env.compile_step speeds up the run's collection and validations only: the final test,
+    evaluate.py (and the ceilings it draws) fly the eager step, whose rounding every other
+    evaluation shares, so no figure depends on how the run trained."""
+    from rlplat.experiment.evaluation import evaluate_run
+
+    compiled = []
+
+    def spy(fn, *args, **kwargs):  # records which env's step is compiled, compiles nothing
+        owner = getattr(fn, "__self__", None)
+        if owner is not None and hasattr(owner, "split_name"):
+            compiled.append(owner.split_name)
+        return fn
+
+    monkeypatch.setattr(torch, "compile", spy)
+    summary = tiny_run(scenarios, tmp_path, "env.compile_step=true")
+    assert sorted(compiled) == ["train", "val"]
+    compiled.clear()
+    ev = evaluate_run(tmp_path, plots=False, trajectories=0)
+    assert compiled == []
+    assert ev.summary["capture_rate"] == summary["test_capture_rate"]
+    assert ev.summary["ceiling"]["scenarios"] > 0  # the ceilings were flown, eagerly
+
+
 def test_sac_paper_matches_the_paper(scenarios):
     # attacker_v3 (the paper's interface) sets no algo value of its own
     algo = compose_config("train", ["algo=sac_paper", "drone=attacker_v3"]).algo

@@ -311,9 +311,11 @@ def evaluate_run(
     n = len(scenarios.split(split))
     # A baseline flies its own velocity commands (eq. 2), not through a learner's action.
     env_cfg = cfg if learned else plain_action(cfg)
-    overrides = {} if attackers is None else {"attackers": attackers}
-    if cfg.dynamics.name == "airsim":
-        overrides["compile_step"] = False  # a step there is calls to the simulator
+    # The eager step whatever the run trained with (env.compile_step): compiled kernels round
+    # differently and flip a few episodes, so a figure would depend on that training knob.
+    overrides = {"compile_step": False}
+    if attackers is not None:
+        overrides["attackers"] = attackers
     env = build_env(
         env_cfg, scenarios=scenarios, split=split, num_envs=eval_num_envs(cfg, n),
         device=device, scenario_order="sequential", **overrides,
@@ -455,7 +457,7 @@ def split_ceiling(cfg, env_cfg, env: PursuitEnv, scenarios, split: str, device):
 
     def plain_env(scenario_set) -> PursuitEnv:  # the split flown with velocity commands
         return build_env(plain_action(cfg), scenarios=scenario_set, split=split, num_envs=n,
-                         device=device, scenario_order="sequential",
+                         device=device, scenario_order="sequential", compile_step=False,
                          attackers=env.num_attackers)  # fmt: skip
 
     def ceiling_of(flown: PursuitEnv):

@@ -385,7 +385,7 @@ def export_run(
     same_set = check_scenarios(scenarios, src.scenario_digest, False, f"recorded with {src.path}")
     n = len(scenarios.split(split))
     env = build_env(src.cfg, scenarios=scenarios, split=split, num_envs=n,
-                    scenario_order="sequential")  # fmt: skip
+                    scenario_order="sequential", compile_step=False)  # fmt: skip
     check_policy_fits(src.state, src.cfg, env, src.path)
     actor = DeterministicActor.from_state(src.state)
     actor.layers()  # a layer the C generator does not know fails here

@@ -290,8 +290,11 @@ def make_train_env(env: PursuitEnv) -> TransformedEnv:
     )
 
 
-def make_eval_env(cfg: DictConfig, scenarios: ScenarioSet, split: str, device) -> PursuitEnv:
-    """One env per scenario of ``split``, walked in order (what :func:`evaluate` needs).
+def make_eval_env(
+    cfg: DictConfig, scenarios: ScenarioSet, split: str, device, **env_overrides
+) -> PursuitEnv:
+    """One env per scenario of ``split``, walked in order (what :func:`evaluate` needs);
+    ``env_overrides`` replace keys of the ``env`` node, as in :func:`build_env`.
 
     A run that trains on AirSim validates (and tests) on the embedded ``velocity`` model, with
     its defaults (simple_flight's fit): the simulators are the collector's, whose episodes in
@@ -303,7 +306,7 @@ def make_eval_env(cfg: DictConfig, scenarios: ScenarioSet, split: str, device) -
     n = len(scenarios.split(split))
     return build_env(
         cfg, scenarios=scenarios, split=split, num_envs=n, device=device,
-        scenario_order="sequential",
+        scenario_order="sequential", **env_overrides,
     )  # fmt: skip
 
 
@@ -497,7 +500,10 @@ def test_best(
 ) -> dict[str, Any]:
     """Fly the best policy on the test split; write and return the run's summary."""
     run.agent.flown_actor.load_state_dict(load_checkpoint(run.ckpt_dir / "best.pt")["actor"])
-    test_env = make_eval_env(cfg, run.scenarios, "test", device)
+    # Eager, as evaluate.py flies it: a compiled step (env.compile_step, which speeds up the
+    # validations) rounds differently and flips a few episodes, so the summary's test figures
+    # are the evaluator's whatever the run trained with.
+    test_env = make_eval_env(cfg, run.scenarios, "test", device, compile_step=False)
     test = evaluate(test_env, run.agent.flown_policy)
     run.metrics.log({f"test/{k}": v for k, v in test.summary().items()}, state.frames)
     role, n_test = run.role, len(test_env.scenarios)
