@@ -42,7 +42,7 @@ from rlplat.eval.report import write_report
 from rlplat.eval.tables import differing_outcomes, episode_rows, summarize, write_csv
 from rlplat.experiment.factory import (
     build_component,
-    build_env,
+    build_eval_env,
     eval_num_envs,
     resolve_scenarios,
 )
@@ -311,14 +311,10 @@ def evaluate_run(
     n = len(scenarios.split(split))
     # A baseline flies its own velocity commands (eq. 2), not through a learner's action.
     env_cfg = cfg if learned else plain_action(cfg)
-    # The eager step whatever the run trained with (env.compile_step): compiled kernels round
-    # differently and flip a few episodes, so a figure would depend on that training knob.
-    overrides = {"compile_step": False}
-    if attackers is not None:
-        overrides["attackers"] = attackers
-    env = build_env(
+    overrides = {} if attackers is None else {"attackers": attackers}
+    env = build_eval_env(
         env_cfg, scenarios=scenarios, split=split, num_envs=eval_num_envs(cfg, n),
-        device=device, scenario_order="sequential", **overrides,
+        device=device, **overrides,
     )  # fmt: skip
     try:
         if state is not None:
@@ -456,9 +452,8 @@ def split_ceiling(cfg, env_cfg, env: PursuitEnv, scenarios, split: str, device):
     n = env.batch_size[0]
 
     def plain_env(scenario_set) -> PursuitEnv:  # the split flown with velocity commands
-        return build_env(plain_action(cfg), scenarios=scenario_set, split=split, num_envs=n,
-                         device=device, scenario_order="sequential", compile_step=False,
-                         attackers=env.num_attackers)  # fmt: skip
+        return build_eval_env(plain_action(cfg), scenarios=scenario_set, split=split,
+                              num_envs=n, device=device, attackers=env.num_attackers)  # fmt: skip
 
     def ceiling_of(flown: PursuitEnv):
         dynamics = build_component(

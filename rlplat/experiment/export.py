@@ -67,7 +67,7 @@ from rlplat.experiment.evaluation import (
     export_dir,
     load_run_config,
 )
-from rlplat.experiment.factory import build_env, resolve_scenarios
+from rlplat.experiment.factory import build_eval_env, resolve_scenarios
 from rlplat.experiment.schema import validate_export_config
 from rlplat.io import atomic_write_bytes, atomic_write_text, sha256_bytes
 from rlplat.scenarios import SPLITS
@@ -384,8 +384,7 @@ def export_run(
     scenarios = resolve_scenarios(src.cfg, src.scenarios_dir)
     same_set = check_scenarios(scenarios, src.scenario_digest, False, f"recorded with {src.path}")
     n = len(scenarios.split(split))
-    env = build_env(src.cfg, scenarios=scenarios, split=split, num_envs=n,
-                    scenario_order="sequential", compile_step=False)  # fmt: skip
+    env = build_eval_env(src.cfg, scenarios=scenarios, split=split, num_envs=n)
     check_policy_fits(src.state, src.cfg, env, src.path)
     actor = DeterministicActor.from_state(src.state)
     actor.layers()  # a layer the C generator does not know fails here

@@ -200,6 +200,26 @@ def _pursuit_env(
     )
 
 
+def build_eval_env(
+    cfg: DictConfig,
+    *,
+    scenarios: ScenarioSet,
+    split: str,
+    num_envs: int,
+    device: str | torch.device = "cpu",
+    **env_overrides: Any,
+) -> PursuitEnv | PursuitParallelEnv:
+    """The env an evaluation flies: ``split`` walked in order (what
+    :func:`rlplat.eval.episodes.evaluate` needs) on the eager step, whatever ``env.compile_step``
+    says. Compiled kernels round differently and flip a few closed-loop episodes, so no figure
+    depends on how a run trained; a run's validation passes ``compile_step`` to compile it.
+    ``env_overrides`` as in :func:`build_env`."""
+    overrides = {"scenario_order": "sequential", "compile_step": False, **env_overrides}
+    return build_env(
+        cfg, scenarios=scenarios, split=split, num_envs=num_envs, device=device, **overrides
+    )
+
+
 def eval_num_envs(cfg: DictConfig, scenarios: int) -> int:
     """How many envs fly an evaluation of ``scenarios`` scenarios: all at once on an embedded
     model; on AirSim, one per simulator (the split flown in waves)."""

@@ -44,7 +44,7 @@ from rlplat.eval.episodes import SCORE_NAME, EpisodeResults, evaluate
 from rlplat.eval.metrics import wilson_interval
 from rlplat.eval.plots import plot_learning_curve
 from rlplat.experiment.evaluation import plain_action
-from rlplat.experiment.factory import build_env, resolve_scenarios
+from rlplat.experiment.factory import build_env, build_eval_env, resolve_scenarios
 from rlplat.experiment.logger import Metrics, make_logger
 from rlplat.experiment.schema import check_resume, validate_train_config
 from rlplat.io import atomic_write_text
@@ -126,7 +126,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     scenarios = resolve_scenarios(cfg, cfg.scenarios_dir)
     env = build_env(cfg, scenarios=scenarios, split="train", num_envs=algo.num_envs, device=device)
     train_env = make_train_env(env)
-    val_env = make_eval_env(cfg, scenarios, "val", device)
+    val_env = make_eval_env(cfg, scenarios, "val", device, compiled=True)
     if cfg.dynamics.name == "airsim":
         log.info("training on AirSim (%s); validation and the final test fly on the embedded "
                  "%s model", ", ".join(cfg.dynamics.endpoints), VALIDATION_DYNAMICS)  # fmt: skip
@@ -291,10 +291,11 @@ def make_train_env(env: PursuitEnv) -> TransformedEnv:
 
 
 def make_eval_env(
-    cfg: DictConfig, scenarios: ScenarioSet, split: str, device, **env_overrides
+    cfg: DictConfig, scenarios: ScenarioSet, split: str, device, *, compiled: bool = False
 ) -> PursuitEnv:
-    """One env per scenario of ``split``, walked in order (what :func:`evaluate` needs);
-    ``env_overrides`` replace keys of the ``env`` node, as in :func:`build_env`.
+    """One env per scenario of ``split``, walked in order (:func:`build_eval_env`): eager, or
+    with ``compiled`` as ``env.compile_step`` says (the validations and the reference flown
+    beside them; the test split is flown eagerly, as ``evaluate.py`` flies it).
 
     A run that trains on AirSim validates (and tests) on the embedded ``velocity`` model, with
     its defaults (simple_flight's fit): the simulators are the collector's, whose episodes in
@@ -304,18 +305,21 @@ def make_eval_env(
         cfg = cfg.copy()
         cfg.dynamics = OmegaConf.create({"name": VALIDATION_DYNAMICS})
     n = len(scenarios.split(split))
-    return build_env(
-        cfg, scenarios=scenarios, split=split, num_envs=n, device=device,
-        scenario_order="sequential", **env_overrides,
-    )  # fmt: skip
+    compile_step = compiled and bool(cfg.env.compile_step)
+    return build_eval_env(
+        cfg, scenarios=scenarios, split=split, num_envs=n, device=device, compile_step=compile_step
+    )
 
 
 def fly_reference(cfg: DictConfig, run: Run, split: str, device) -> EpisodeResults:
     """The scripted reference on ``split``: through the run's action where a scripted command
     can be flown through it, else on the plain velocity action."""
-    env = run.val_env if split == "val" else make_eval_env(cfg, run.scenarios, split, device)
+    if split == "val":
+        env = run.val_env
+    else:
+        env = make_eval_env(cfg, run.scenarios, split, device, compiled=True)
     if not getattr(env.action_fn, "invertible", True):
-        env = make_eval_env(plain_action(cfg), run.scenarios, split, device)
+        env = make_eval_env(plain_action(cfg), run.scenarios, split, device, compiled=True)
     return evaluate(env, make_scripted_policy(REFERENCE[run.role], env))
 
 
@@ -500,10 +504,7 @@ def test_best(
 ) -> dict[str, Any]:
     """Fly the best policy on the test split; write and return the run's summary."""
     run.agent.flown_actor.load_state_dict(load_checkpoint(run.ckpt_dir / "best.pt")["actor"])
-    # Eager, as evaluate.py flies it: a compiled step (env.compile_step, which speeds up the
-    # validations) rounds differently and flips a few episodes, so the summary's test figures
-    # are the evaluator's whatever the run trained with.
-    test_env = make_eval_env(cfg, run.scenarios, "test", device, compile_step=False)
+    test_env = make_eval_env(cfg, run.scenarios, "test", device)  # eager, as evaluate.py
     test = evaluate(test_env, run.agent.flown_policy)
     run.metrics.log({f"test/{k}": v for k, v in test.summary().items()}, state.frames)
     role, n_test = run.role, len(test_env.scenarios)
