@@ -70,6 +70,7 @@ def test_registries_match_config_groups():
         "attacker_v9",
         "attacker_v10",
         "attacker_v11",
+        "attacker_v12",
         "defender_v1",
     }
 
@@ -87,13 +88,16 @@ def test_registries_match_config_groups():
         ("attacker_v9", 16),
         ("attacker_v10", 20),
         ("attacker_v11", 24),
+        ("attacker_v12", 24),
     ],
 )
 def test_drone_bundles_pick_their_observation_and_cli_wins(scenarios, drone, dim):
     env = make_env(f"drone={drone}", scenarios=scenarios.path, num_envs=2)
     assert env.observation_spec["observation"].shape == (2, dim)
     shaped = set(OmegaConf.load(CONF / "reward" / "shaped.yaml").terms)
-    extra = {"attacker_v11": {"action_sq"}}.get(drone, set())  # a price on the correction
+    extra = (
+        {"action_sq"} if drone in ("attacker_v11", "attacker_v12") else set()
+    )  # a price on the correction
     assert set(env.reward_fn.weights) == shaped | extra  # eq. 3's terms by default
     env = make_env(f"drone={drone}", "reward=sparse", scenarios=scenarios.path)
     assert set(env.reward_fn.weights) == {"capture", "out_of_view", "ground_contact"}

@@ -318,6 +318,8 @@ def _spec():
          "CORRECTION to the route-intercept law", 20),
         ("attacker_v11", "route_law", "a correction to the route-intercept law",
          "CORRECTION to the route-intercept law", 24),
+        ("attacker_v12", "route_law", "a correction to the route-intercept law",
+         "CORRECTION to the route-intercept law", 24),
     ],
 )  # fmt: skip
 def test_a_guided_controller_exports_with_its_guidance(
@@ -341,6 +343,8 @@ def test_a_guided_controller_exports_with_its_guidance(
     assert (path is not None) == (action_name == "route_law")
     if path is not None:
         assert path["lag"] == 0.9 and path["gain"] == 1.0 and path["acceptance"] == 1.0
+        law = action["guidance"]  # attacker_v12's law allows for the attacker's start-up
+        assert path["start_lag"] == law["start_lag"] == (0.5 if drone == "attacker_v12" else 0)
     conformity = card["interface"].get("route_conformity")  # what the caller keeps per defender
     assert (conformity is not None) == (obs_dim == 24)
     if conformity is not None:
@@ -357,6 +361,17 @@ def test_a_guided_controller_exports_with_its_guidance(
         torch.save(state, ckpt)
         with pytest.raises(ConfigError, match=r"trained with the defender's route path .*'lag': 0"):
             evaluate_run(run, ckpt="last", plots=False)
+        # Saved before the start-up lag was recorded: the law had none.
+        del state["interface"]["route_path"]["start_lag"]
+        state["interface"]["route_path"]["lag"] = 0.9
+        torch.save(state, ckpt)
+        if drone == "attacker_v12":
+            with pytest.raises(
+                ConfigError, match=r"'start_lag': 0.0}, this env's .*'start_lag': 0.5"
+            ):
+                evaluate_run(run, ckpt="last", plots=False)
+        else:
+            assert "capture_rate" in evaluate_run(run, ckpt="last", plots=False).summary
 
 
 def test_implementations_that_differ_fail_the_export_and_write_nothing(run, tmp_path):

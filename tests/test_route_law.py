@@ -139,11 +139,34 @@ def test_the_lagged_path_predicts_a_setpoints_defender(tmp_path, write_small_set
     assert error.median() * 3 < (plain - actual).norm(dim=-1)[free].median()
 
 
-def test_a_zero_correction_flies_the_route_intercept_law(scenarios):
+# attacker_v12's law: a later homing, and a start-up lag the meeting point allows for.
+V12_LAW = {"homing_time": 0.5, "start_lag": 0.5}
+
+
+def test_the_start_up_lag_moves_the_meeting_later():
+    g = torch.Generator().manual_seed(1)
+    n, times = 256, torch.arange(1, 81) * 0.25
+    own, other = torch.rand(n, 3, generator=g) * 60 - 30, torch.rand(n, 3, generator=g) * 20
+    route = torch.rand(n, 6, 3, generator=g) * 60 - 30
+    own_speed, other_speed = torch.rand(n, generator=g) * 4 + 1, torch.rand(n, generator=g) * 4 + 1
+    args = (own, own_speed, other, route, other_speed)
+    _, due, found = route_intercept(*args, times=times, lag=0.0, reach=1.2)
+    _, due_lag, found_lag = route_intercept(*args, times=times, lag=0.5, reach=1.2)
+    assert (found | ~found_lag).all()  # reachable with a lag: reachable without
+    both = found & found_lag
+    assert (due_lag[both] >= due[both]).all() and (due_lag[both] > due[both]).any()
+
+
+@pytest.mark.parametrize("law", [{}, V12_LAW], ids=["default", "attacker_v12"])
+def test_a_zero_correction_flies_the_route_intercept_law(scenarios, law):
     n = len(scenarios.split("val"))
     plain = make_env(PLAIN, scenarios=scenarios, num_envs=n, split="val")
-    law = make_env(PLAIN, "action=route_law", scenarios=scenarios, num_envs=n, split="val")
-    route = make_scripted_policy("route_intercept", plain)
+    knobs = [f"action.{k}={v}" for k, v in law.items()]
+    law_env = make_env(PLAIN, "action=route_law", *knobs, scenarios=scenarios, num_envs=n,
+                       split="val")  # fmt: skip
+    assert law_env.meeting_lag == law.get("start_lag", 0.0)
+    route = make_scripted_policy("route_intercept", plain, **law)
+    law = law_env
     a, b = plain.reset(), law.reset()
     for _ in range(40):
         a = plain.step(route(a))["next"]
@@ -151,12 +174,18 @@ def test_a_zero_correction_flies_the_route_intercept_law(scenarios):
         torch.testing.assert_close(a["positions"], b["positions"], rtol=0, atol=1e-5)
 
 
-def test_a_scripted_policy_flies_its_own_commands_through_the_route_law(scenarios):
+@pytest.mark.parametrize("law", [{}, V12_LAW], ids=["default", "attacker_v12"])
+def test_a_scripted_policy_flies_its_own_commands_through_the_route_law(scenarios, law):
+    # By name, route_intercept is the law the env's action corrects (its homing and lag).
     n = len(scenarios.split("val"))
     plain = make_env(PLAIN, scenarios=scenarios, num_envs=n, split="val")
-    law = make_env(PLAIN, "action=route_law", scenarios=scenarios, num_envs=n, split="val")
+    knobs = [f"action.{k}={v}" for k, v in law.items()]
+    law_env = make_env(PLAIN, "action=route_law", *knobs, scenarios=scenarios, num_envs=n,
+                       split="val")  # fmt: skip
+    law, kwargs = law_env, {"route_intercept": law}
     for name in ("proportional_navigation", "route_intercept"):
-        on_plain, through = make_scripted_policy(name, plain), make_scripted_policy(name, law)
+        on_plain = make_scripted_policy(name, plain, **kwargs.get(name, {}))
+        through = make_scripted_policy(name, law)
         a, b = plain.reset(), law.reset()
         for _ in range(30):
             a = plain.step(on_plain(a))["next"]
@@ -301,6 +330,10 @@ def test_the_meeting_point_is_an_attackers(scenarios, option):
         make_env("drone=defender_v1", option, scenarios=scenarios, num_envs=2)
 
 
-def test_the_route_law_refuses_a_negative_homing_time(scenarios):
-    with pytest.raises(ConfigError, match="homing_time"):
-        make_env(V10, "action.homing_time=-1", scenarios=scenarios, num_envs=2)
+@pytest.mark.parametrize("key", ["homing_time", "start_lag"])
+def test_the_route_law_refuses_a_negative_time(scenarios, key):
+    with pytest.raises(ConfigError, match=rf"^action.{key}: .*-1"):
+        make_env(V10, f"action.{key}=-1", scenarios=scenarios, num_envs=2)
+    with pytest.raises(ConfigError, match=rf"^route_intercept.{key}: .*inf"):
+        make_scripted_policy("route_intercept", make_env(PLAIN, scenarios=scenarios),
+                             **{key: math.inf})  # fmt: skip

@@ -62,8 +62,11 @@ def saved_interface(state: dict[str, Any]) -> dict[str, Any]:
 
 
 def route_path_interface(env) -> dict[str, float] | None:
-    """The defender's path an env's meeting point assumes (None: it computes none)."""
-    return asdict(env.route_flight) if env.computes_meeting else None
+    """The defender's path an env's meeting point assumes, and the attacker's start-up lag it
+    allows for (None: it computes none)."""
+    if not env.computes_meeting:
+        return None
+    return {**asdict(env.route_flight), "start_lag": env.meeting_lag}
 
 
 def check_route_path(state: dict[str, Any], env, path, where: str) -> None:
@@ -73,6 +76,8 @@ def check_route_path(state: dict[str, Any], env, path, where: str) -> None:
     if now is None:
         return
     saved = saved_interface(state).get("route_path")
+    if saved is not None:  # saved before the start-up lag was a setting: there was none
+        saved = {**saved, "start_lag": saved.get("start_lag", 0.0)}
     if saved is None:
         log.warning("%s: %s saved no route path; its meeting point is flown with %s, which may "
                     "not be the one it was trained with", where, path, now)  # fmt: skip

@@ -17,6 +17,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import resources
@@ -177,7 +178,7 @@ class RouteIntercept(ProportionalNavigation):
     Each step, for the nearest defender in play: its path as a ``setpoints`` defender would fly
     the rest of its route (:func:`rlplat.envs.kinematics.route_path`), and the earliest point of
     that path the attacker can reach in time (:func:`~rlplat.envs.kinematics.route_intercept`,
-    at full speed per axis after a start-up ``lag``). The attacker flies to that point
+    at full speed per axis after a start-up lag ``start_lag``). The attacker flies to that point
     (``gain`` per metre, saturated at its maximum speed) and waits there, until the defender is
     due within ``homing_time``; from then on, and where no point is reachable, it flies
     proportional navigation (``lead``, ``max_lead_time``). A defender that leaves its route
@@ -191,7 +192,12 @@ class RouteIntercept(ProportionalNavigation):
         flight: how the defenders fly their routes (the env's setpoint gain and acceptance
             radius, :func:`~rlplat.envs.kinematics.setpoint_flight`; the default, without lags).
         homing_time: s, switch to proportional navigation when the meeting is this close.
+        start_lag: s, the attacker's start-up lag the meeting point allows for.
         gain, lead, max_lead_time: as :class:`ProportionalNavigation`.
+
+    Made by name (``make_scripted_policy``), it flies the law of the env's action where that
+    action is the route law (``action=route_law``: its ``homing_time`` and ``start_lag``), so
+    the baseline is the law a run's correction corrects; otherwise these defaults.
     """
 
     in_keys = ("positions", "velocities", "max_speed", "caught", "waypoint", "scenario_index")
@@ -205,15 +211,18 @@ class RouteIntercept(ProportionalNavigation):
         time_limit: float,
         flight: SetpointFlight | None = None,
         homing_time: float = 2.0,
+        start_lag: float = 0.0,
         **pn: Any,
     ) -> None:
         super().__init__(**pn)
-        if not homing_time >= 0:
-            raise ConfigError(f"route_intercept.homing_time: must be >= 0, got {homing_time}")
+        for key, value in (("homing_time", homing_time), ("start_lag", start_lag)):
+            if not 0 <= value < math.inf:
+                raise ConfigError(f"route_intercept.{key}: must be finite and >= 0, got {value}")
         self.register_buffer("routes", routes.float())
         self.register_buffer("scenario_routes", scenario_routes.long())
         self.register_buffer("times", route_times(time_limit))
         self.capture_radius, self.homing_time = float(capture_radius), float(homing_time)
+        self.start_lag = float(start_lag)
         self.flight = SetpointFlight() if flight is None else flight
 
     def forward(
@@ -234,7 +243,7 @@ class RouteIntercept(ProportionalNavigation):
         aim, due, reachable = route_meeting(
             own, speed.squeeze(-1), positions[:, self.others], velocities[:, self.others],
             max_speed[:, self.others], routes, waypoint, near, times=self.times,
-            reach=self.capture_radius, flight=self.flight,
+            reach=self.capture_radius, flight=self.flight, lag=self.start_lag,
         )  # fmt: skip
         action = route_law(homing, aim - own, due, reachable, speed, self.gain, self.homing_time)
         return self._action(action)
@@ -277,13 +286,20 @@ class Scripted:
 
 
 def _known_routes(env: PursuitEnv) -> dict[str, Any]:
-    """What :class:`RouteIntercept` knows in advance: the routes of the env's split."""
+    """What :class:`RouteIntercept` knows in advance: the routes of the env's split, and the
+    law of the env's action where it corrects the route-intercept law."""
+    law = env.action_fn
     return {
         "routes": env.routes,
         "scenario_routes": env.scenarios["route"],
         "capture_radius": env.capture_radius,
         "time_limit": env.max_steps * env.control_period,
         "flight": env.route_flight,
+        **(
+            {"homing_time": law.homing_time, "start_lag": law.start_lag}
+            if getattr(law, "reads_route", False)
+            else {}
+        ),
     }
 
 
@@ -359,9 +375,7 @@ class Unguided(nn.Module):
             "team": policy.team,
         }
         if getattr(self.action, "reads_route", False):  # the route-intercept law
-            self.guidance = RouteIntercept(
-                **law, **_known_routes(env), homing_time=self.action.homing_time
-            )
+            self.guidance = RouteIntercept(**law, **_known_routes(env))
         else:
             self.guidance = ProportionalNavigation(**law, accel_lead=self.action.accel_lead)
         self.in_keys = tuple(dict.fromkeys((*policy.in_keys, *self.guidance.in_keys)))

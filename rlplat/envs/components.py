@@ -6,6 +6,7 @@ by the drones of a team), M for the opponents a drone sees and K for its team-ma
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -648,7 +649,8 @@ class RouteLawAction(GuidedVelocityAction):
     axis, with ``g`` the action of :func:`rlplat.envs.kinematics.route_law`: fly to the
     earliest point of the nearest defender's route-flying path the attacker can reach and hold
     there until the defender is due within ``homing_time``, proportional navigation from then
-    on and where no such point exists (the ``route_intercept`` baseline). The env computes the
+    on and where no such point exists (the ``route_intercept`` baseline). The meeting point
+    assumes the attacker reaches full speed per axis ``start_lag`` s from now. The env computes the
     meeting point from the defender's route (known in advance, as the capture ceiling
     assumes). A zero action flies the law; with ``scale >= 2`` :meth:`inverse` flies any
     command. Attackers only.
@@ -657,6 +659,9 @@ class RouteLawAction(GuidedVelocityAction):
         gain, lead, max_lead_time, scale: as :class:`GuidedVelocityAction` (``gain`` is also
             the command per metre to the meeting point).
         homing_time: s, when the law turns to proportional navigation.
+        start_lag: s, the attacker's start-up lag the meeting point allows for: a point the
+            attacker could reach only by flying at full speed from this instant is one its
+            velocity dynamics cannot keep.
     """
 
     name = "route_law"
@@ -671,11 +676,13 @@ class RouteLawAction(GuidedVelocityAction):
         max_lead_time: float = 4.0,
         scale: float = 2.0,
         homing_time: float = 2.0,
+        start_lag: float = 0.0,
     ) -> None:
         super().__init__(gain=gain, lead=lead, max_lead_time=max_lead_time, scale=scale)
-        if not homing_time >= 0:
-            raise ConfigError(f"action.homing_time: must be >= 0, got {homing_time}")
-        self.homing_time = float(homing_time)
+        for key, value in (("homing_time", homing_time), ("start_lag", start_lag)):
+            if not 0 <= value < math.inf:
+                raise ConfigError(f"action.{key}: must be finite and >= 0, got {value}")
+        self.homing_time, self.start_lag = float(homing_time), float(start_lag)
 
     def guidance(
         self,
@@ -703,15 +710,16 @@ class RouteLawAction(GuidedVelocityAction):
             "lead": self.lead,
             "max_lead_time": self.max_lead_time,
             "homing_time": self.homing_time,
+            "start_lag": self.start_lag,
         }
 
     def describe(self) -> list[str]:
         return [
             "action is a CORRECTION to the route-intercept law (action route_law): the velocity",
             f"command is clamp(law + {self.scale:g} * action, -1, 1) x max speed per axis; the",
-            "law flies to the earliest reachable point of the defender's route-flying path",
-            f"(gain {self.gain:g}/s) and holds there until the defender is due within "
-            f"{self.homing_time:g} s,",
+            "law flies to the earliest point of the defender's route-flying path it can reach",
+            f"after a {self.start_lag:g}-s start-up lag (gain {self.gain:g}/s) and holds there",
+            f"until the defender is due within {self.homing_time:g} s,",
             f"then proportional navigation (lead {self.lead:g}, max lead time "
             f"{self.max_lead_time:g} s; rlplat.envs.kinematics.route_law).",
         ]

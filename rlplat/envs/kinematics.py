@@ -235,9 +235,9 @@ def route_intercept(
     return point.squeeze(-2), t[first], found
 
 
-#: The route-intercept law's prediction: the pursuer's start-up lag (s) and the instants tried
-#: (every ROUTE_RESOLUTION s up to the episode's time limit).
-ROUTE_LAG, ROUTE_RESOLUTION = 0.0, 0.25
+#: s, the route-intercept law's prediction: the instants tried (every ROUTE_RESOLUTION s up to
+#: the episode's time limit).
+ROUTE_RESOLUTION = 0.25
 #: s, the defender's velocity time constant the law assumes (the embedded velocity dynamics'
 #: horizontal one, ``dynamics=velocity`` ``tau_xy``), for every leg whatever the dynamics: a
 #: vertical leg lags less (``tau_z`` 0.08 s).
@@ -263,15 +263,16 @@ def route_meeting(
     times: Tensor,
     reach: float,
     flight: SetpointFlight,
+    lag: float = 0.0,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`route_intercept` of K pursuers (own (N, K, 3), own_speed (N, K)) with the chosen
     defenders (``index`` (N, K) into defenders (N, m, 3), defender_velocity (N, m, 3),
-    defender_speed (N, m), routes (N, m, S, 3), waypoint (N, m)) flying as ``flight``, at the
-    law's start-up lag ``ROUTE_LAG``."""
+    defender_speed (N, m), routes (N, m, S, 3), waypoint (N, m)) flying as ``flight``, with
+    the pursuers' start-up ``lag`` (s)."""
     ahead = route_ahead(routes, waypoint, index)
     other, other_speed = gather_drones(defenders, index), gather_drones(defender_speed, index)
     return route_intercept(
-        own, own_speed, other, ahead, other_speed, times=times, lag=ROUTE_LAG, reach=reach,
+        own, own_speed, other, ahead, other_speed, times=times, lag=lag, reach=reach,
         other_velocity=gather_drones(defender_velocity, index), flight=flight,
     )  # fmt: skip
 

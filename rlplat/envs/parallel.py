@@ -63,6 +63,7 @@ SHARED = (
     "setpoint_gain",
     "pursuit_gain",
     "route_flight",
+    "meeting_lag",
     "computes_meeting",
     "defender_network",
     "drone_action_spec",

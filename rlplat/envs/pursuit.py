@@ -282,9 +282,11 @@ class PursuitEnv(EnvBase):
         self.terminate_out_of_view = bool(terminate_out_of_view)
         self.setpoint_acceptance = float(setpoint_acceptance)
         self.setpoint_gain, self.pursuit_gain = float(setpoint_gain), float(pursuit_gain)
-        #: How :meth:`meeting` expects a route-flying defender to fly, and whether every step
+        #: How :meth:`meeting` expects a route-flying defender to fly, the attacker's start-up
+        #: lag it allows for (s, the route law's ``start_lag``), and whether every step
         #: computes the meeting point (the action or the observation reads it).
         self.route_flight = setpoint_flight(self.setpoint_gain, self.setpoint_acceptance)
+        self.meeting_lag = float(getattr(action, "start_lag", 0.0))
         self.computes_meeting = meets
         self.sampler = ScenarioSampler(
             len(self.scenarios), scenario_order, self.device, scenario_share
@@ -591,14 +593,15 @@ class PursuitEnv(EnvBase):
         from positions p and velocities v (N, k + m, 3): the point (N, k, 3) m, when the
         defender is there (N, k) s and whether the attacker can be there by then (N, k) bool
         (:func:`rlplat.envs.kinematics.route_intercept`, the route flown as a ``setpoints``
-        defender flies it, with this env's setpoint gain and acceptance radius)."""
+        defender flies it, with this env's setpoint gain and acceptance radius, and the
+        attacker's start-up lag ``meeting_lag``)."""
         own, defenders, speed = p[:, self.attackers], p[:, self.defenders], self.max_speed
         near = nearest(own, defenders, targets(self.caught))
         return route_meeting(
             own, speed[:, self.attackers], defenders, v[:, self.defenders],
             speed[:, self.defenders], self.routes[self.route], self.waypoint, near,
             times=self._route_times, reach=self.capture_radius,
-            flight=self.route_flight,
+            flight=self.route_flight, lag=self.meeting_lag,
         )  # fmt: skip
 
     def _relative(self, p: Tensor) -> Tensor:

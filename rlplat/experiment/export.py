@@ -270,7 +270,9 @@ def interface_card(src: Source, env, actor: DeterministicActor, features) -> dic
     if path is not None:  # the meeting point the caller computes, from this path
         interface["route_path"] = {
             "model": "rlplat.envs.kinematics.route_path (velocity lag, setpoint gain, acceptance), "
-            "from the defender's position, velocity, maximum speed and route ahead",
+            "from the defender's position, velocity, maximum speed and route ahead; the meeting "
+            "point is its earliest point the attacker reaches at full speed per axis after "
+            "start_lag s (rlplat.envs.kinematics.route_intercept)",
             **path,
         }
     if getattr(env.obs_fn, "reads_conformity", False):  # features the caller computes, with state

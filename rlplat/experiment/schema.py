@@ -261,6 +261,7 @@ ACTION_KNOBS: dict[str, Rule] = {
     "accel_reach": NON_NEGATIVE,
     "correction_reach": NON_NEGATIVE,
     "homing_time": NON_NEGATIVE,
+    "start_lag": NON_NEGATIVE,
 }
 #: Component groups: registry, knob rules, and the arguments the env factory passes itself.
 COMPONENTS: dict[str, tuple[Mapping[str, Any], Mapping[str, Rule], tuple[str, ...]]] = {
