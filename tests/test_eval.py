@@ -250,6 +250,8 @@ def test_compare_mode_flies_every_baseline_in_one_command(trained_run):
         assert r["interceptable"] == (
             r["route_interceptable"] if r["defender_strategy"] == "setpoints" else ""
         )
+    law = json.loads((trained_run / "eval" / "val-route_intercept" / "summary.json").read_text())
+    assert law["policy_args"] == {}  # attacker_v4 corrects no route law: the law's defaults
     summary = json.loads((trained_run / "eval" / "val-best" / "summary.json").read_text())
     assert summary["route_ceiling"]["scenarios"] == 16
     assert (

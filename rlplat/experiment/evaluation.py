@@ -311,6 +311,7 @@ def evaluate_run(
     n = len(scenarios.split(split))
     # A baseline flies its own velocity commands (eq. 2), not through a learner's action.
     env_cfg = cfg if learned else plain_action(cfg)
+    policy_args = {} if learned else baseline_args(policy, cfg)
     overrides = {} if attackers is None else {"attackers": attackers}
     env = build_eval_env(
         env_cfg, scenarios=scenarios, split=split, num_envs=eval_num_envs(cfg, n),
@@ -336,7 +337,7 @@ def evaluate_run(
                 torch_actor = actor
                 actor = artifact_policy(policy, files, state, env, compiler, features)
         else:
-            actor = make_scripted_policy(policy, env)
+            actor = make_scripted_policy(policy, env, **policy_args)
 
         # Replay.
         t0 = time.perf_counter()
@@ -376,6 +377,7 @@ def evaluate_run(
         "policy": policy,
         "name": name,
         "checkpoint": str(path) if path else None,
+        "policy_args": policy_args,
         "ensemble": [str(p) for p, _ in members],
         "lone_in_team": state is not None and lone_in_team,
         "split": split,
@@ -428,6 +430,17 @@ def ensemble_members(
                 raise ConfigError(f"ensemble: {run} has {key}={theirs}, run_dir has {key}={mine}")
         members.append((checkpoint_path(Path(run), ckpt), member_cfg))
     return members
+
+
+def baseline_args(policy: str, cfg: DictConfig) -> dict[str, float]:
+    """What the baseline ``policy`` takes from the run: ``route_intercept`` on a run that
+    corrects the route-intercept law (``action=route_law``) flies that law (its ``homing_time``
+    and ``start_lag``; a run saved before ``start_lag`` existed: none), so the baseline is the
+    learner's starting point."""
+    action = cfg.get("action") or {}
+    if policy != "route_intercept" or action.get("name") != "route_law":
+        return {}
+    return {k: float(action[k]) for k in ("homing_time", "start_lag") if k in action}
 
 
 def plain_action(cfg: DictConfig) -> DictConfig:
