@@ -649,11 +649,10 @@ class RouteLawAction(GuidedVelocityAction):
     axis, with ``g`` the action of :func:`rlplat.envs.kinematics.route_law`: fly to the
     earliest point of the nearest defender's route-flying path the attacker can reach and hold
     there until the defender is due within ``homing_time``, proportional navigation from then
-    on and where no such point exists (the ``route_intercept`` baseline). The meeting point
-    assumes the attacker reaches full speed per axis ``start_lag`` s from now. The env computes the
+    on and where no such point exists (the ``route_intercept`` baseline). The env computes the
     meeting point from the defender's route (known in advance, as the capture ceiling
-    assumes). A zero action flies the law; with ``scale >= 2`` :meth:`inverse` flies any
-    command. Attackers only.
+    assumes), with the attacker at full speed per axis from ``start_lag`` s on. A zero action
+    flies the law; with ``scale >= 2`` :meth:`inverse` flies any command. Attackers only.
 
     Args:
         gain, lead, max_lead_time, scale: as :class:`GuidedVelocityAction` (``gain`` is also
