@@ -357,7 +357,7 @@ def test_a_guided_controller_exports_with_its_guidance(
     if path is not None:  # the route_intercept baseline flies the law the run corrects
         baseline = evaluate_run(run, policy="route_intercept", plots=False).summary
         assert baseline["policy_args"] == {k: law[k] for k in ("homing_time", "start_lag")}
-    if path is not None:  # a checkpoint trained on another route path is refused
+        # A checkpoint trained on another route path is refused.
         ckpt = run / "checkpoints" / "last.pt"
         state = torch.load(ckpt, weights_only=False)
         state["interface"]["route_path"]["lag"] = 0.0

@@ -166,11 +166,10 @@ def test_a_zero_correction_flies_the_route_intercept_law(scenarios, law):
                        split="val")  # fmt: skip
     assert law_env.meeting_lag == law.get("start_lag", 0.0)
     route = make_scripted_policy("route_intercept", plain, **law)
-    law = law_env
-    a, b = plain.reset(), law.reset()
+    a, b = plain.reset(), law_env.reset()
     for _ in range(40):
         a = plain.step(route(a))["next"]
-        b = law.step(b.set("action", torch.zeros(n, 3)))["next"]
+        b = law_env.step(b.set("action", torch.zeros(n, 3)))["next"]
         torch.testing.assert_close(a["positions"], b["positions"], rtol=0, atol=1e-5)
 
 
@@ -182,17 +181,16 @@ def test_a_scripted_policy_flies_its_own_commands_through_the_route_law(scenario
     knobs = [f"action.{k}={v}" for k, v in law.items()]
     law_env = make_env(PLAIN, "action=route_law", *knobs, scenarios=scenarios, num_envs=n,
                        split="val")  # fmt: skip
-    law, kwargs = law_env, {"route_intercept": law}
     for name in ("proportional_navigation", "route_intercept"):
-        on_plain = make_scripted_policy(name, plain, **kwargs.get(name, {}))
-        through = make_scripted_policy(name, law)
-        a, b = plain.reset(), law.reset()
+        on_plain = make_scripted_policy(name, plain, **(law if name == "route_intercept" else {}))
+        through = make_scripted_policy(name, law_env)
+        a, b = plain.reset(), law_env.reset()
         for _ in range(30):
             a = plain.step(on_plain(a))["next"]
             b = through(b)
             if name == "route_intercept":  # the law itself: a zero correction
                 assert b["action"].abs().max() < 1e-6
-            b = law.step(b)["next"]
+            b = law_env.step(b)["next"]
             torch.testing.assert_close(a["positions"], b["positions"], rtol=0, atol=1e-4)
 
 

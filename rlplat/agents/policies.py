@@ -295,11 +295,7 @@ def _known_routes(env: PursuitEnv) -> dict[str, Any]:
         "capture_radius": env.capture_radius,
         "time_limit": env.max_steps * env.control_period,
         "flight": env.route_flight,
-        **(
-            {"homing_time": law.homing_time, "start_lag": law.start_lag}
-            if getattr(law, "reads_route", False)
-            else {}
-        ),
+        **{k: getattr(law, k) for k in getattr(law, "law_args", ())},
     }
 
 

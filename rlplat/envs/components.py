@@ -665,6 +665,8 @@ class RouteLawAction(GuidedVelocityAction):
 
     name = "route_law"
     reads_route = True  # the env passes the meeting point with the guidance
+    #: The law's own settings: what the ``route_intercept`` baseline flies with to be this law.
+    law_args = ("homing_time", "start_lag")
     corrects = ("the route-intercept law", "law")
 
     def __init__(
@@ -678,7 +680,7 @@ class RouteLawAction(GuidedVelocityAction):
         start_lag: float = 0.0,
     ) -> None:
         super().__init__(gain=gain, lead=lead, max_lead_time=max_lead_time, scale=scale)
-        for key, value in (("homing_time", homing_time), ("start_lag", start_lag)):
+        for key, value in zip(self.law_args, (homing_time, start_lag), strict=True):
             if not 0 <= value < math.inf:
                 raise ConfigError(f"action.{key}: must be finite and >= 0, got {value}")
         self.homing_time, self.start_lag = float(homing_time), float(start_lag)

@@ -32,6 +32,7 @@ from rlplat.agents.checkpoint import (
 from rlplat.agents.export import ARTIFACTS, observation_key
 from rlplat.agents.native import OnnxPolicy, artifact_module, build_library, find_compiler
 from rlplat.agents.policies import POLICIES, MeanAction, make_scripted_policy, policies_for
+from rlplat.envs.components import ACTIONS
 from rlplat.envs.dynamics import DYNAMICS
 from rlplat.envs.pursuit import ROLES, PursuitEnv
 from rlplat.errors import ConfigError
@@ -440,7 +441,7 @@ def baseline_args(policy: str, cfg: DictConfig) -> dict[str, float]:
     action = cfg.get("action") or {}
     if policy != "route_intercept" or action.get("name") != "route_law":
         return {}
-    return {k: float(action[k]) for k in ("homing_time", "start_lag") if k in action}
+    return {k: float(action[k]) for k in ACTIONS["route_law"].law_args if k in action}
 
 
 def plain_action(cfg: DictConfig) -> DictConfig:
