@@ -15,6 +15,7 @@ from rlplat.envs.kinematics import (
     follow_route,
     route_intercept,
     route_path,
+    route_times,
     setpoint_flight,
 )
 from rlplat.errors import ConfigError
@@ -143,6 +144,84 @@ def test_the_lagged_path_predicts_a_setpoints_defender(tmp_path, write_small_set
 V12_LAW = {"homing_time": 0.5, "start_lag": 0.5}
 
 
+def test_the_search_in_blocks_gives_the_full_searchs_answer(monkeypatch):
+    # Later blocks of instants are searched only by the pursuers without a point yet; the
+    # answer must be the one-block search's, value for value, wherever the point lies.
+    from rlplat.envs import kinematics
+
+    g = torch.Generator().manual_seed(2)
+    n, times = 2048, route_times(60.0)  # 240 instants: the env's
+    other = torch.rand(n, 2, 3, generator=g) * 40  # a batch of two dimensions
+    own = other + (torch.rand(n, 2, 3, generator=g) * 2 - 1).pow(3) * 60  # some near, some far
+    route = other.unsqueeze(-2) + torch.rand(n, 2, 6, 3, generator=g) * 120 - 60
+    own_speed = torch.rand(n, 2, generator=g) * 4 + 0.5
+    other_speed = torch.rand(n, 2, generator=g) * 4 + 0.5
+    velocity = torch.randn(n, 2, 3, generator=g)
+    args = (own, own_speed, other, route, other_speed)
+    for left in (None, torch.rand(n, 2, generator=g) * 70):
+        kw = dict(times=times, lag=0.5, reach=1.2, time_left=left, other_velocity=velocity,
+                  flight=setpoint_flight(1.0, 0.5))  # fmt: skip
+        blocked = route_intercept(*args, **kw)
+        monkeypatch.setattr(kinematics, "SEARCH_BLOCKS", ())
+        full = route_intercept(*args, **kw)
+        monkeypatch.undo()
+        for a, b in zip(blocked, full, strict=True):
+            assert a.shape == b.shape and torch.equal(a, b)
+        # Every block answers some: points in the first, the second and the last, and none.
+        index = (blocked[1] / 0.25).round().long() - 1
+        found = blocked[2]
+        edges = (0, *kinematics.SEARCH_BLOCKS, len(times))
+        for lo, hi in zip(edges, edges[1:], strict=False):
+            assert (found & (index >= lo) & (index < hi)).sum() >= 10, (lo, hi)
+        assert (~found).sum() >= 10
+
+
+def test_an_env_stepped_past_its_episode_end_keeps_its_meeting_point(scenarios):
+    # An evaluation steps every env of a wave until the last episode ends: an env whose
+    # episode has ended skips the search and keeps its last meeting point; the others' is the
+    # full search's, and a reset searches again.
+    n = len(scenarios.split("val"))
+    env = make_env(V11, "env.time_limit=2", "env.scenario_order=sequential", scenarios=scenarios,
+                   num_envs=n, split="val")  # fmt: skip
+    td = env.reset()
+    law = make_scripted_policy("route_intercept", env)
+    ended_at = {}
+    for _ in range(40):
+        td = env.step(law(td))["next"]
+        ended = td["done"].squeeze(-1)
+        for i in ended.nonzero().squeeze(-1).tolist():
+            ended_at.setdefault(i, [x[i].clone() for x in env._meeting])
+        assert torch.equal(env.ended, torch.tensor([i in ended_at for i in range(n)]))
+        full = env._meet(env.dynamics.position, env.dynamics.velocity, slice(None))
+        for i in range(n):
+            for kept, now, searched in zip(ended_at.get(i, full), env._meeting, full, strict=True):
+                assert torch.equal(now[i], kept[i] if i not in ended_at else kept)
+                if i not in ended_at:
+                    assert torch.equal(now[i], searched[i])
+    assert 0 < len(ended_at) == n  # every episode ended (time limit at 20 steps), some early
+    td = env.reset(td.set("_reset", torch.ones(n, 1, dtype=torch.bool)))
+    assert not env.ended.any()
+
+
+def test_an_evaluation_skips_no_meeting_point_it_counts(scenarios, monkeypatch):
+    # The skip leaves every counted step as it was: the same episodes with every env searched.
+    from rlplat.envs.pursuit import PursuitEnv
+
+    n = len(scenarios.split("val"))
+    env = make_env(V11, "env.scenario_order=sequential", scenarios=scenarios, num_envs=n,
+                   split="val")  # fmt: skip
+    law = make_scripted_policy("route_intercept", env)
+    skipping = evaluate(env, law)
+    meeting = PursuitEnv.meeting
+    monkeypatch.setattr(PursuitEnv, "meeting", lambda self, p, v, running=None: meeting(self, p, v))
+    searched = evaluate(env, law)
+    assert skipping.length.float().std() > 0  # episodes of different lengths: envs ran past theirs
+    for key in ("captured", "returns", "length", "min_distance", "time_to_capture"):
+        assert torch.equal(
+            getattr(skipping, key).nan_to_num(), getattr(searched, key).nan_to_num()
+        ), key
+
+
 def test_the_start_up_lag_moves_the_meeting_later():
     g = torch.Generator().manual_seed(1)
     n, times = 256, torch.arange(1, 81) * 0.25
@@ -167,10 +246,14 @@ def test_a_zero_correction_flies_the_route_intercept_law(scenarios, law):
     assert law_env.meeting_lag == law.get("start_lag", 0.0)
     route = make_scripted_policy("route_intercept", plain, **law)
     a, b = plain.reset(), law_env.reset()
+    running = torch.ones(n, dtype=torch.bool)  # past its episode's end, an env is not compared
     for _ in range(40):
         a = plain.step(route(a))["next"]
         b = law_env.step(b.set("action", torch.zeros(n, 3)))["next"]
-        torch.testing.assert_close(a["positions"], b["positions"], rtol=0, atol=1e-5)
+        torch.testing.assert_close(a["positions"][running], b["positions"][running], rtol=0,
+                                   atol=1e-5)  # fmt: skip
+        running &= ~a["done"].squeeze(-1)
+    assert running.sum() >= n // 2
 
 
 @pytest.mark.parametrize("law", [{}, V12_LAW], ids=["default", "attacker_v12"])
@@ -185,13 +268,17 @@ def test_a_scripted_policy_flies_its_own_commands_through_the_route_law(scenario
         on_plain = make_scripted_policy(name, plain, **(law if name == "route_intercept" else {}))
         through = make_scripted_policy(name, law_env)
         a, b = plain.reset(), law_env.reset()
+        running = torch.ones(n, dtype=torch.bool)  # compared until its episode ends
         for _ in range(30):
             a = plain.step(on_plain(a))["next"]
             b = through(b)
             if name == "route_intercept":  # the law itself: a zero correction
-                assert b["action"].abs().max() < 1e-6
+                assert b["action"][running].abs().max() < 1e-6
             b = law_env.step(b)["next"]
-            torch.testing.assert_close(a["positions"], b["positions"], rtol=0, atol=1e-4)
+            torch.testing.assert_close(a["positions"][running], b["positions"][running], rtol=0,
+                                       atol=1e-4)  # fmt: skip
+            running &= ~a["done"].squeeze(-1)
+        assert running.sum() >= n // 2
 
 
 def test_the_law_flies_to_the_meeting_point_until_homing(tmp_path, write_small_set):

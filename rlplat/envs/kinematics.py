@@ -137,7 +137,7 @@ def route_path(
         route: (*B, S, 3) m, the setpoints it will fly to, in order (a route flown to its end
             repeats its last setpoint: the drone holds there).
         max_speed: (*B,) m/s per axis.
-        times: (T,) s from now, increasing.
+        times: (T,) s from now, increasing; or (*B, T), each drone's own.
         velocity: (*B, 3) m/s, the drone's now (None: at rest); what it already flies along
             its first leg shortens that leg's lag.
         flight: how it flies a leg.
@@ -157,7 +157,7 @@ def route_path(
         lag = torch.cat([lag[..., :1] * (1 - along / speed.squeeze(-1)).clamp(0, 1).unsqueeze(-1),
                          lag[..., 1:]], -1)  # fmt: skip
     arrive = (lag + distance / speed + flight.approach(distance, speed)).cumsum(-1)  # (*B, S) s
-    t = times.to(position).expand(*arrive.shape[:-1], times.shape[0]).contiguous()
+    t = times.to(position).expand(*arrive.shape[:-1], times.shape[-1]).contiguous()
     leg = torch.searchsorted(arrive.contiguous(), t, right=True)  # (*B, T): the leg flown
     leg = leg.clamp(max=step.shape[-2] - 1)
     start = torch.cat([torch.zeros_like(arrive[..., :1]), arrive[..., :-1]], -1) + lag
@@ -220,19 +220,51 @@ def route_intercept(
         The point (*B, 3) m, the time the target is there (*B,) s and whether the pursuer can
         be there by then (*B,) bool.
     """
-    path = route_path(other, route, other_speed, times, velocity=other_velocity, flight=flight)
-    gap = (path - own.unsqueeze(-2)).abs().amax(-1)  # (*B, T)
     t = times.to(own)
-    reachable = gap <= own_speed.unsqueeze(-1) * (t - lag).clamp_min(0) + reach
-    last = torch.full_like(gap[..., 0], t.shape[0] - 1, dtype=torch.int64)
+    batch, n_t = own.shape[:-1], t.shape[0]
+    args = (own, own_speed, other, route, other_speed, other_velocity, time_left)
+    flat = [None if x is None else x.reshape(-1, *x.shape[len(batch) :]) for x in args]
+    own, own_speed, other, route, other_speed, other_velocity, time_left = flat
+
+    def search(rows: Tensor | None, lo: int, hi: int) -> tuple[Tensor, Tensor]:
+        """For the pursuers ``rows`` (None: all), the first instant of ``t[lo:hi]`` at which
+        the target's path is reachable (an index into ``t``) and whether there is one."""
+        o, o_speed, x, r, x_speed, x_velocity, left = (
+            a if a is None or rows is None else a[rows] for a in flat
+        )
+        path = route_path(x, r, x_speed, t[lo:hi], velocity=x_velocity, flight=flight)
+        gap = (path - o.unsqueeze(-2)).abs().amax(-1)  # (M, hi - lo)
+        reachable = gap <= o_speed.unsqueeze(-1) * (t[lo:hi] - lag).clamp_min(0) + reach
+        if left is not None:
+            reachable &= t[lo:hi] <= left.unsqueeze(-1)
+        return lo + reachable.to(torch.uint8).argmax(-1), reachable.any(-1)
+
+    if torch.compiler.is_compiling():  # static shapes: every instant for every pursuer
+        first, found = search(None, 0, n_t)
+    else:  # in blocks: a block is searched only by the pursuers without a point yet
+        first = torch.full(own.shape[:1], -1, dtype=torch.int64, device=own.device)
+        rows, lo = torch.arange(first.shape[0], device=own.device), 0
+        for hi in (*(b for b in SEARCH_BLOCKS if b < n_t), n_t):
+            index, hit = search(rows if lo else None, lo, hi)
+            first[rows[hit]] = index[hit]
+            rows, lo = rows[~hit], hi
+            if rows.numel() == 0:
+                break
+        found = first >= 0
+    last = torch.full_like(first, n_t - 1)
     if time_left is not None:
-        within = t <= time_left.unsqueeze(-1)
-        reachable &= within
-        last = (within.sum(-1) - 1).clamp_min(0)
-    found = reachable.any(-1)
-    first = torch.where(found, reachable.to(torch.uint8).argmax(-1), last)
-    point = path.gather(-2, first.unsqueeze(-1).unsqueeze(-1).expand(*first.shape, 1, 3))
-    return point.squeeze(-2), t[first], found
+        last = ((t <= time_left.unsqueeze(-1)).sum(-1) - 1).clamp_min(0)
+    first = torch.where(found, first, last)
+    due = t[first]  # the path at that instant alone: as the full search's, value for value
+    point = route_path(other, route, other_speed, due.unsqueeze(-1), velocity=other_velocity,
+                       flight=flight)  # fmt: skip
+    return point.reshape(*batch, 3), due.reshape(batch), found.reshape(batch)
+
+
+#: The blocks of instants :func:`route_intercept` searches in turn (the index where each
+#: next block starts): most meeting points lie a few seconds ahead, so the later instants
+#: are tried only by the pursuers that have none yet; the answer is the full search's.
+SEARCH_BLOCKS = (8, 32)
 
 
 #: s, the route-intercept law's prediction: the instants tried (every ROUTE_RESOLUTION s up to

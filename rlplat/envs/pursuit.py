@@ -311,6 +311,9 @@ class PursuitEnv(EnvBase):
         # acceleration (m/s^2) and that residual's size averaged over conformity_time.
         self.route_residual = torch.zeros(num_envs, m, 3, device=self.device)
         self.route_deviation = torch.zeros(num_envs, m, device=self.device)
+        # Whether each env's episode has ended (done) since its reset: an env stepped on past
+        # its end (as an evaluation's waves do) skips the meeting point's search.
+        self.ended = torch.zeros(num_envs, dtype=torch.bool, device=self.device)
         self._make_specs(num_envs)
 
     def close(self, *, raise_if_closed: bool = True) -> None:
@@ -416,6 +419,7 @@ class PursuitEnv(EnvBase):
             self.acceleration = self.acceleration.masked_fill(mask.view(n, 1, 1), 0.0)
             self.route_residual = self.route_residual.masked_fill(mask.view(n, 1, 1), 0.0)
             self.route_deviation = self.route_deviation.masked_fill(rows, 0.0)
+            self.ended = self.ended.masked_fill(mask, False)
         sight = self._sight(self._relative(self.dynamics.position))
         flag = torch.zeros(n, 1, dtype=torch.bool, device=self.device)
         out = self._outputs(
@@ -454,6 +458,7 @@ class PursuitEnv(EnvBase):
         step's output tensordict. ``env.compile_step`` wraps this method in ``torch.compile``.
         """
         n, t = self.batch_size[0], self.team_size
+        running = ~self.ended  # the envs whose episode goes on
         # Command every drone: the other role by its script, the learners by the policy.
         p, v = self.dynamics.position, self.dynamics.velocity
         target, route_done = self._target()
@@ -525,9 +530,11 @@ class PursuitEnv(EnvBase):
 
         rewards = {"reward": team_mean(total)}
         rewards["reward_terms"] = {k: team_mean(x) for k, x in terms.items()}
+        self.ended = self.ended | terminated | truncated
         return self._outputs(
             sight,
             all_caught.unsqueeze(-1),
+            running=running,
             team_reward=total.unsqueeze(-1),
             terminated=terminated.unsqueeze(-1),
             truncated=truncated.unsqueeze(-1),
@@ -588,18 +595,36 @@ class PursuitEnv(EnvBase):
         meeting = (aim - own, due, reachable)
         return self.action_fn.guidance(rel, v_other, speed, a_other, meeting=meeting)
 
-    def meeting(self, p: Tensor, v: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def meeting(
+        self, p: Tensor, v: Tensor, running: Tensor | None = None
+    ) -> tuple[Tensor, Tensor, Tensor]:
         """Where each attacker can meet its nearest defender in play on that defender's route,
         from positions p and velocities v (N, k + m, 3): the point (N, k, 3) m, when the
         defender is there (N, k) s and whether the attacker can be there by then (N, k) bool
         (:func:`rlplat.envs.kinematics.route_intercept`, the route flown as a ``setpoints``
         defender flies it, with this env's setpoint gain and acceptance radius, and the
-        attacker's start-up lag ``meeting_lag``)."""
-        own, defenders, speed = p[:, self.attackers], p[:, self.defenders], self.max_speed
-        near = nearest(own, defenders, targets(self.caught))
+        attacker's start-up lag ``meeting_lag``).
+
+        With ``running`` (N,) bool, only those envs' are searched; the others keep the last
+        computed (an eager step's saving for envs stepped on past their episode's end).
+        """
+        last = self._meeting
+        if running is None or last is None or torch.compiler.is_compiling() or running.all():
+            return self._meet(p, v, slice(None))
+        if not running.any():
+            return last
+        rows = running.nonzero().squeeze(-1)
+        found = self._meet(p, v, rows)
+        return tuple(x.index_put((rows,), y) for x, y in zip(last, found, strict=True))  # type: ignore[return-value]
+
+    def _meet(self, p: Tensor, v: Tensor, rows: Tensor | slice) -> tuple[Tensor, Tensor, Tensor]:
+        """:meth:`meeting` of the envs ``rows``."""
+        own, defenders = p[rows, self.attackers], p[rows, self.defenders]
+        speed, caught = self.max_speed[rows], self.caught[rows]
+        near = nearest(own, defenders, targets(caught))
         return route_meeting(
-            own, speed[:, self.attackers], defenders, v[:, self.defenders],
-            speed[:, self.defenders], self.routes[self.route], self.waypoint, near,
+            own, speed[:, self.attackers], defenders, v[rows, self.defenders],
+            speed[:, self.defenders], self.routes[self.route[rows]], self.waypoint[rows], near,
             times=self._route_times, reach=self.capture_radius,
             flight=self.route_flight, lag=self.meeting_lag,
         )  # fmt: skip
@@ -660,9 +685,15 @@ class PursuitEnv(EnvBase):
         return pure_pursuit(own, goal, self.max_speed[:, self.attackers], self.pursuit_gain)
 
     def _outputs(
-        self, sight: _Sight, captured: Tensor, team_reward: Tensor | None = None, **extra
+        self,
+        sight: _Sight,
+        captured: Tensor,
+        team_reward: Tensor | None = None,
+        running: Tensor | None = None,
+        **extra,
     ) -> dict[str, Tensor | dict[str, Tensor]]:
-        """The output entries; every tensor in them is fresh (no alias of the env's state)."""
+        """The output entries; every tensor in them is fresh (no alias of the env's state).
+        ``running`` (N,) bool: the envs whose episode went on into this state (None: all)."""
         p, v = self.dynamics.position, self.dynamics.velocity  # replaced on every advance/reset
         n, t = self.batch_size[0], self.team_size
         own_p, own_v = p[:, self.team], v[:, self.team]
@@ -682,7 +713,7 @@ class PursuitEnv(EnvBase):
         if self.obs_fn.route_ahead:  # an observation that reads the route ahead
             view = replace(view, next_setpoint=route_view(self._setpoint(1)))
         # The meeting point of this state: the observation's, and the next step's guidance.
-        self._meeting = self.meeting(p, v) if self.computes_meeting else None
+        self._meeting = self.meeting(p, v, running) if self.computes_meeting else None
         if self.obs_fn.reads_intercept:  # an observation that reads the meeting point
             aim, due, _ = self._meeting
             view = replace(view, intercept=aim, intercept_time=due)
