@@ -262,7 +262,7 @@ def route_intercept(
 
 
 #: The blocks of instants :func:`route_intercept` searches in turn (the index where each
-#: next block starts): most meeting points lie a few seconds ahead, so the later instants
+#: next block starts): many meeting points lie a few seconds ahead, so the later instants
 #: are tried only by the pursuers that have none yet; the answer is the full search's.
 SEARCH_BLOCKS = (8, 32)
 
