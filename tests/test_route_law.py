@@ -144,9 +144,10 @@ def test_the_lagged_path_predicts_a_setpoints_defender(tmp_path, write_small_set
 V12_LAW = {"homing_time": 0.5, "start_lag": 0.5}
 
 
-def test_the_search_in_blocks_gives_the_full_searchs_answer(monkeypatch):
+def test_the_search_in_blocks_gives_the_full_searchs_answer():
     # Later blocks of instants are searched only by the pursuers without a point yet; the
-    # answer must be the one-block search's, value for value, wherever the point lies.
+    # answer must be the full search's (the path at every instant, the first one reachable
+    # gathered from it), value for value, wherever the point lies.
     from rlplat.envs import kinematics
 
     g = torch.Generator().manual_seed(2)
@@ -157,50 +158,63 @@ def test_the_search_in_blocks_gives_the_full_searchs_answer(monkeypatch):
     own_speed = torch.rand(n, 2, generator=g) * 4 + 0.5
     other_speed = torch.rand(n, 2, generator=g) * 4 + 0.5
     velocity = torch.randn(n, 2, 3, generator=g)
-    args = (own, own_speed, other, route, other_speed)
+    flight = setpoint_flight(1.0, 0.5)
+    path = route_path(other, route, other_speed, times, velocity=velocity, flight=flight)
+    gap = (path - own.unsqueeze(-2)).abs().amax(-1)  # (n, 2, T)
+    reachable = gap <= own_speed.unsqueeze(-1) * (times - 0.5).clamp_min(0) + 1.2
     for left in (None, torch.rand(n, 2, generator=g) * 70):
-        kw = dict(times=times, lag=0.5, reach=1.2, time_left=left, other_velocity=velocity,
-                  flight=setpoint_flight(1.0, 0.5))  # fmt: skip
-        blocked = route_intercept(*args, **kw)
-        monkeypatch.setattr(kinematics, "SEARCH_BLOCKS", ())
-        full = route_intercept(*args, **kw)
-        monkeypatch.undo()
-        for a, b in zip(blocked, full, strict=True):
-            assert a.shape == b.shape and torch.equal(a, b)
+        point, due, found = route_intercept(
+            own, own_speed, other, route, other_speed, times=times, lag=0.5, reach=1.2,
+            time_left=left, other_velocity=velocity, flight=flight,
+        )  # fmt: skip
+        ok, last = reachable, torch.full(found.shape, len(times) - 1)
+        if left is not None:
+            within = times <= left.unsqueeze(-1)
+            ok, last = ok & within, (within.sum(-1) - 1).clamp_min(0)
+        first = torch.where(ok.any(-1), ok.to(torch.uint8).argmax(-1), last)
+        assert torch.equal(found, ok.any(-1)) and torch.equal(due, times[first])
+        expected = path.gather(-2, first[..., None, None].expand(n, 2, 1, 3)).squeeze(-2)
+        assert torch.equal(point, expected)
         # Every block answers some: points in the first, the second and the last, and none.
-        index = (blocked[1] / 0.25).round().long() - 1
-        found = blocked[2]
         edges = (0, *kinematics.SEARCH_BLOCKS, len(times))
         for lo, hi in zip(edges, edges[1:], strict=False):
-            assert (found & (index >= lo) & (index < hi)).sum() >= 10, (lo, hi)
+            assert (found & (first >= lo) & (first < hi)).sum() >= 10, (lo, hi)
         assert (~found).sum() >= 10
 
 
 def test_an_env_stepped_past_its_episode_end_keeps_its_meeting_point(scenarios):
     # An evaluation steps every env of a wave until the last episode ends: an env whose
-    # episode has ended skips the search and keeps its last meeting point; the others' is the
-    # full search's, and a reset searches again.
+    # episode has ended skips the search and keeps the point of the step it ended on; an env
+    # whose episode ran into this step (the one it ends on included) gets the full search's.
     n = len(scenarios.split("val"))
-    env = make_env(V11, "env.time_limit=2", "env.scenario_order=sequential", scenarios=scenarios,
+    env = make_env(V11, "env.time_limit=4", "env.scenario_order=sequential", scenarios=scenarios,
                    num_envs=n, split="val")  # fmt: skip
     td = env.reset()
     law = make_scripted_policy("route_intercept", env)
-    ended_at = {}
-    for _ in range(40):
+    kept: dict[int, list[torch.Tensor]] = {}  # each ended env's point, as it ended
+    some_ended = False
+    for _ in range(50):
+        before = env.ended.clone()
         td = env.step(law(td))["next"]
-        ended = td["done"].squeeze(-1)
-        for i in ended.nonzero().squeeze(-1).tolist():
-            ended_at.setdefault(i, [x[i].clone() for x in env._meeting])
-        assert torch.equal(env.ended, torch.tensor([i in ended_at for i in range(n)]))
-        full = env._meet(env.dynamics.position, env.dynamics.velocity, slice(None))
-        for i in range(n):
-            for kept, now, searched in zip(ended_at.get(i, full), env._meeting, full, strict=True):
-                assert torch.equal(now[i], kept[i] if i not in ended_at else kept)
-                if i not in ended_at:
-                    assert torch.equal(now[i], searched[i])
-    assert 0 < len(ended_at) == n  # every episode ended (time limit at 20 steps), some early
-    td = env.reset(td.set("_reset", torch.ones(n, 1, dtype=torch.bool)))
-    assert not env.ended.any()
+        p, v = env.dynamics.position, env.dynamics.velocity
+        for now, searched in zip(env._meeting, env._meet(p, v, slice(None)), strict=True):
+            assert torch.equal(now[~before], searched[~before])
+        for i, point in kept.items():
+            assert all(torch.equal(x[i], y) for x, y in zip(env._meeting, point, strict=True))
+        assert torch.equal(env.ended, before | td["done"].squeeze(-1))
+        for i in (env.ended & ~before).nonzero().squeeze(-1).tolist():
+            kept[i] = [x[i].clone() for x in env._meeting]
+        some_ended |= 0 < int(before.sum()) < n
+    assert some_ended and env.ended.all()  # some episodes ended early, every one by 40 steps
+    # A partial reset clears its envs' flags alone and searches them again.
+    mask = torch.arange(n) % 2 == 0
+    env.reset(td.set("_reset", mask.unsqueeze(-1)))
+    assert torch.equal(env.ended, ~mask)
+    p, v = env.dynamics.position, env.dynamics.velocity
+    for now, searched in zip(env._meeting, env._meet(p, v, slice(None)), strict=True):
+        assert torch.equal(now[mask], searched[mask])
+    for i in (~mask).nonzero().squeeze(-1).tolist():
+        assert all(torch.equal(x[i], y) for x, y in zip(env._meeting, kept[i], strict=True))
 
 
 def test_an_evaluation_skips_no_meeting_point_it_counts(scenarios, monkeypatch):
@@ -216,10 +230,13 @@ def test_an_evaluation_skips_no_meeting_point_it_counts(scenarios, monkeypatch):
     monkeypatch.setattr(PursuitEnv, "meeting", lambda self, p, v, running=None: meeting(self, p, v))
     searched = evaluate(env, law)
     assert skipping.length.float().std() > 0  # episodes of different lengths: envs ran past theirs
-    for key in ("captured", "returns", "length", "min_distance", "time_to_capture"):
-        assert torch.equal(
-            getattr(skipping, key).nan_to_num(), getattr(searched, key).nan_to_num()
-        ), key
+    keys = ("captured", "grounded", "returns", "length", "min_distance", "time_to_capture",
+            "visible_fraction", "defender_route_fraction", "defender_caught")  # fmt: skip
+    for key in keys:
+        a, b = getattr(skipping, key), getattr(searched, key)
+        assert torch.equal(a.nan_to_num(), b.nan_to_num()), key
+    for key, value in skipping.term_sums.items():
+        assert torch.equal(value, searched.term_sums[key]), key
 
 
 def test_the_start_up_lag_moves_the_meeting_later():

@@ -422,9 +422,10 @@ class PursuitEnv(EnvBase):
             self.ended = self.ended.masked_fill(mask, False)
         sight = self._sight(self._relative(self.dynamics.position))
         flag = torch.zeros(n, 1, dtype=torch.bool, device=self.device)
-        out = self._outputs(
-            sight, flag, done=flag.clone(), terminated=flag.clone(), truncated=flag.clone()
-        )
+        out = self._outputs(  # an env left ended keeps its meeting point
+            sight, flag, running=~self.ended, done=flag.clone(), terminated=flag.clone(),
+            truncated=flag.clone(),
+        )  # fmt: skip
         return self._tensordict(out)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
