@@ -63,6 +63,16 @@ def test_the_meeting_point_is_the_earliest_point_of_the_path_reached_in_time():
     )  # fmt: skip
     assert torch.equal(found_left, found & (due <= 5.0))
     assert (due_left <= 5.0).all()
+    # Arguments broadcast to the batch: one speed and one time limit for every pursuit.
+    one = route_intercept(
+        own, own_speed[:1].expand(n).contiguous(), other, route, other_speed, times=times,
+        lag=0.5, reach=1.2, time_left=left,
+    )  # fmt: skip
+    shared = route_intercept(
+        own, own_speed[0], other, route, other_speed, times=times, lag=0.5, reach=1.2,
+        time_left=torch.tensor(5.0),
+    )  # fmt: skip
+    assert all(torch.equal(a, b) for a, b in zip(one, shared, strict=True))
 
 
 def test_a_setpoints_defender_is_never_ahead_of_its_route_path(tmp_path, write_small_set):

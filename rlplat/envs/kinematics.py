@@ -220,10 +220,20 @@ def route_intercept(
         The point (*B, 3) m, the time the target is there (*B,) s and whether the pursuer can
         be there by then (*B,) bool.
     """
-    t = times.to(own)
-    batch, n_t = own.shape[:-1], t.shape[0]
+    t, n_t = times.to(own), times.shape[0]
     args = (own, own_speed, other, route, other_speed, other_velocity, time_left)
-    flat = [None if x is None else x.reshape(-1, *x.shape[len(batch) :]) for x in args]
+    event = (1, 0, 1, 2, 0, 1, 0)  # each argument's dimensions beyond the batch's
+    given = [(x, k) for x, k in zip(args, event, strict=True) if x is not None]
+    batch = torch.broadcast_shapes(*(x.shape[: x.dim() - k] for x, k in given))
+
+    def on_batch(x: Tensor | None, k: int) -> Tensor | None:
+        """``x`` on the common batch, flattened to one dimension."""
+        if x is None:
+            return None
+        tail = x.shape[x.dim() - k :]
+        return x.expand(*batch, *tail).reshape(-1, *tail)
+
+    flat = [on_batch(x, k) for x, k in zip(args, event, strict=True)]
     own, own_speed, other, route, other_speed, other_velocity, time_left = flat
 
     def search(rows: Tensor | None, lo: int, hi: int) -> tuple[Tensor, Tensor]:
