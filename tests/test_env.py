@@ -95,9 +95,8 @@ def test_drone_bundles_pick_their_observation_and_cli_wins(scenarios, drone, dim
     env = make_env(f"drone={drone}", scenarios=scenarios.path, num_envs=2)
     assert env.observation_spec["observation"].shape == (2, dim)
     shaped = set(OmegaConf.load(CONF / "reward" / "shaped.yaml").terms)
-    extra = (
-        {"action_sq"} if drone in ("attacker_v11", "attacker_v12") else set()
-    )  # a price on the correction
+    # attacker_v11 on put a price on the correction
+    extra = {"action_sq"} if drone in ("attacker_v11", "attacker_v12") else set()
     assert set(env.reward_fn.weights) == shaped | extra  # eq. 3's terms by default
     env = make_env(f"drone={drone}", "reward=sparse", scenarios=scenarios.path)
     assert set(env.reward_fn.weights) == {"capture", "out_of_view", "ground_contact"}

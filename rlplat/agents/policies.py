@@ -17,7 +17,6 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import resources
@@ -38,6 +37,7 @@ from rlplat.envs.kinematics import (
     follow_route,
     gather_drones,
     intercept_action,
+    law_times,
     nearest,
     route_law,
     route_meeting,
@@ -215,14 +215,12 @@ class RouteIntercept(ProportionalNavigation):
         **pn: Any,
     ) -> None:
         super().__init__(**pn)
-        for key, value in (("homing_time", homing_time), ("start_lag", start_lag)):
-            if not 0 <= value < math.inf:
-                raise ConfigError(f"route_intercept.{key}: must be finite and >= 0, got {value}")
+        times = law_times("route_intercept", homing_time=homing_time, start_lag=start_lag)
         self.register_buffer("routes", routes.float())
         self.register_buffer("scenario_routes", scenario_routes.long())
         self.register_buffer("times", route_times(time_limit))
-        self.capture_radius, self.homing_time = float(capture_radius), float(homing_time)
-        self.start_lag = float(start_lag)
+        self.capture_radius = float(capture_radius)
+        self.homing_time, self.start_lag = times["homing_time"], times["start_lag"]
         self.flight = SetpointFlight() if flight is None else flight
 
     def forward(

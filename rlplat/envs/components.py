@@ -6,7 +6,6 @@ by the drones of a team), M for the opponents a drone sees and K for its team-ma
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -14,7 +13,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from rlplat.envs.kinematics import aim_velocity, intercept_action, route_law, targets
+from rlplat.envs.kinematics import aim_velocity, intercept_action, law_times, route_law, targets
 from rlplat.errors import ConfigError
 
 
@@ -680,10 +679,8 @@ class RouteLawAction(GuidedVelocityAction):
         start_lag: float = 0.0,
     ) -> None:
         super().__init__(gain=gain, lead=lead, max_lead_time=max_lead_time, scale=scale)
-        for key, value in zip(self.law_args, (homing_time, start_lag), strict=True):
-            if not 0 <= value < math.inf:
-                raise ConfigError(f"action.{key}: must be finite and >= 0, got {value}")
-        self.homing_time, self.start_lag = float(homing_time), float(start_lag)
+        times = law_times("action", homing_time=homing_time, start_lag=start_lag)
+        self.homing_time, self.start_lag = times["homing_time"], times["start_lag"]
 
     def guidance(
         self,

@@ -8,6 +8,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from rlplat.errors import ConfigError
+
 
 def follow_route(
     position: Tensor, target: Tensor, route_done: Tensor, max_speed: Tensor, gain: float
@@ -323,6 +325,15 @@ def route_times(time_limit: float, device=None) -> Tensor:
     """The instants (T,) s the route-intercept law tries, up to ``time_limit``."""
     steps = max(1, round(time_limit / ROUTE_RESOLUTION))
     return torch.arange(1, steps + 1, device=device) * ROUTE_RESOLUTION
+
+
+def law_times(where: str, **times: float) -> dict[str, float]:
+    """The route-intercept law's times (s) as floats; a one-line error naming ``where.key`` for
+    one that is negative or not finite."""
+    for key, value in times.items():
+        if not 0 <= value < math.inf:
+            raise ConfigError(f"{where}.{key}: must be finite and >= 0, got {value}")
+    return {key: float(value) for key, value in times.items()}
 
 
 def route_law(
