@@ -4,6 +4,9 @@
 with N torch CPU threads. Which CPU kernels torch picks is set before torch is imported, by the
 environment variable ``ATEN_CPU_CAPABILITY`` (e.g. ``avx2`` or ``default``), which the
 subprocesses inherit as they are; torch.compile's on-disk cache is kept apart per capability.
+
+A test that takes a ``device`` argument runs on the CPU and, where torch sees one, on a CUDA
+device (``pytest -k cuda`` runs those alone on a GPU machine).
 """
 
 import os
@@ -77,6 +80,17 @@ CHASE = (
 
 
 # Machine options ---------------------------------------------------------------------------
+
+#: A CUDA device, where torch sees one: the ``device`` tests run there as well as on the CPU.
+CUDA = pytest.param(
+    "cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+)
+
+
+def pytest_generate_tests(metafunc):
+    # A test that takes ``device`` runs on the CPU and on a CUDA device (skipped without one).
+    if "device" in metafunc.fixturenames:
+        metafunc.parametrize("device", ["cpu", CUDA])
 
 
 def pytest_addoption(parser):

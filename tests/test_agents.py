@@ -141,10 +141,11 @@ def test_compiled_update_matches_eager(scenarios, monkeypatch):
 
 
 @pytest.mark.slow
-def test_compiled_update_from_a_replay_buffer_matches_eager(scenarios):
+def test_compiled_update_from_a_replay_buffer_matches_eager(scenarios, device):
     """What the training loop runs: n-step transitions in a replay buffer, the compiled update
     drawing its own rows, against the eager update on ``buffer.sample()`` (the same draws);
-    a checkpoint taken midway loads into a fresh compiled agent and into an eager one."""
+    a checkpoint taken midway loads into a fresh compiled agent and into an eager one. On the
+    CPU and on a CUDA device (networks, env and buffer there)."""
     import torch._inductor.config
     from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
@@ -156,24 +157,25 @@ def test_compiled_update_from_a_replay_buffer_matches_eager(scenarios):
     # attacker_v4: a 3-d action
     cfg = compose_config("train", [f"scenarios_dir={scenarios.path}", "drone=attacker_v4"])
     assert cfg.algo.n_steps > 1  # the default: transitions carry steps_to_next_obs
-    env = build_env(cfg, scenarios=scenarios, split="train", num_envs=16)
+    env = build_env(cfg, scenarios=scenarios, split="train", num_envs=16, device=device)
     td, steps = env.reset(), []
     for _ in range(8):
         out, td = env.step_and_maybe_reset(td.set("action", env.action_spec.rand()))
         steps.append(out)
-    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(1000), batch_size=32)
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(1000, device=device), batch_size=32)
     buffer.extend(replay(torch.stack(steps, dim=1), env.group, cfg.algo))
 
     def agent(compile_):
         torch.manual_seed(0)
         return SACAgent(
             net_spec(env.obs_fn.scale, 3, cfg.algo), env.action_spec[0], gamma=0.99, tau=0.02,
-            actor_lr=1e-3, critic_lr=1e-3, alpha_lr=1e-3, compile=compile_,
+            actor_lr=1e-3, critic_lr=1e-3, alpha_lr=1e-3, compile=compile_, device=device,
         )  # fmt: skip
 
     # Compiled code draws from eager's RNG stream; the config patch is undone on exit.
     with torch._inductor.config.patch(fallback_random=True):
         eager, compiled = agent(False), agent(True)
+        assert all(p.device.type == device for p in compiled.loss.parameters())
         for step in range(2 * SACAgent.WARMUP_CALLS + 2):
             if step == SACAgent.WARMUP_CALLS + 1:  # a checkpoint, resumed by a new agent
                 state = compiled.state_dict()

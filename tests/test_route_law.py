@@ -154,30 +154,36 @@ def test_the_lagged_path_predicts_a_setpoints_defender(tmp_path, write_small_set
 V12_LAW = {"homing_time": 0.5, "start_lag": 0.5}
 
 
-def test_the_search_in_blocks_gives_the_full_searchs_answer():
+def test_the_search_in_blocks_gives_the_full_searchs_answer(device):
     # Later blocks of instants are searched only by the pursuers without a point yet; the
     # answer must be the full search's (the path at every instant, the first one reachable
-    # gathered from it), value for value, wherever the point lies.
+    # gathered from it), value for value, wherever the point lies. On a CUDA device the
+    # search is one full search (kinematics.blocked_search): its answer is checked alike.
     from rlplat.envs import kinematics
 
     g = torch.Generator().manual_seed(2)
-    n, times = 2048, route_times(60.0)  # 240 instants: the env's
-    other = torch.rand(n, 2, 3, generator=g) * 40  # a batch of two dimensions
-    own = other + (torch.rand(n, 2, 3, generator=g) * 2 - 1).pow(3) * 60  # some near, some far
-    route = other.unsqueeze(-2) + torch.rand(n, 2, 6, 3, generator=g) * 120 - 60
-    own_speed = torch.rand(n, 2, generator=g) * 4 + 0.5
-    other_speed = torch.rand(n, 2, generator=g) * 4 + 0.5
-    velocity = torch.randn(n, 2, 3, generator=g)
+    n, times = 2048, route_times(60.0, device)  # 240 instants: the env's
+
+    def draw(*shape):
+        return torch.rand(*shape, generator=g).to(device)
+
+    other = draw(n, 2, 3) * 40  # a batch of two dimensions
+    own = other + (draw(n, 2, 3) * 2 - 1).pow(3) * 60  # some near, some far
+    route = other.unsqueeze(-2) + draw(n, 2, 6, 3) * 120 - 60
+    own_speed = draw(n, 2) * 4 + 0.5
+    other_speed = draw(n, 2) * 4 + 0.5
+    velocity = torch.randn(n, 2, 3, generator=g).to(device)
     flight = setpoint_flight(1.0, 0.5)
     path = route_path(other, route, other_speed, times, velocity=velocity, flight=flight)
     gap = (path - own.unsqueeze(-2)).abs().amax(-1)  # (n, 2, T)
     reachable = gap <= own_speed.unsqueeze(-1) * (times - 0.5).clamp_min(0) + 1.2
-    for left in (None, torch.rand(n, 2, generator=g) * 70):
+    for left in (None, draw(n, 2) * 70):
         point, due, found = route_intercept(
             own, own_speed, other, route, other_speed, times=times, lag=0.5, reach=1.2,
             time_left=left, other_velocity=velocity, flight=flight,
         )  # fmt: skip
-        ok, last = reachable, torch.full(found.shape, len(times) - 1)
+        assert point.device == own.device
+        ok, last = reachable, torch.full(found.shape, len(times) - 1, device=device)
         if left is not None:
             within = times <= left.unsqueeze(-1)
             ok, last = ok & within, (within.sum(-1) - 1).clamp_min(0)

@@ -251,7 +251,7 @@ def route_intercept(
             reachable &= t[lo:hi] <= left.unsqueeze(-1)
         return lo + reachable.to(torch.uint8).argmax(-1), reachable.any(-1)
 
-    if torch.compiler.is_compiling():  # static shapes: every instant for every pursuer
+    if not blocked_search(own.device):  # every instant for every pursuer
         first, found = search(None, 0, n_t)
     else:  # in blocks: a block is searched only by the pursuers without a point yet
         first = torch.full(own.shape[:1], -1, dtype=torch.int64, device=own.device)
@@ -277,6 +277,14 @@ def route_intercept(
 #: next block starts): many meeting points lie a few seconds ahead, so the later instants
 #: are tried only by the pursuers that have none yet; the answer is the full search's.
 SEARCH_BLOCKS = (8, 32)
+
+
+def blocked_search(device: torch.device) -> bool:
+    """Whether :func:`route_intercept` searches in blocks (and an env's step searches only its
+    running envs) on ``device``: eagerly on the CPU. A compiled step keeps static shapes; on
+    an accelerator each block waits for the device to say which rows still search, which
+    costs more than the instants it saves (benchmarks.md, "Meeting point")."""
+    return device.type == "cpu" and not torch.compiler.is_compiling()
 
 
 #: s, the route-intercept law's prediction: the instants tried (every ROUTE_RESOLUTION s up to

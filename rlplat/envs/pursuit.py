@@ -15,6 +15,7 @@ from torchrl.envs import EnvBase
 
 from rlplat.envs.components import DroneView, Reward, RewardContext, inside_ellipsoid
 from rlplat.envs.kinematics import (
+    blocked_search,
     follow_route,
     gather_drones,
     nearest,
@@ -607,10 +608,11 @@ class PursuitEnv(EnvBase):
         attacker's start-up lag ``meeting_lag``).
 
         With ``running`` (N,) bool, only those envs' are searched; the others keep the last
-        computed (an eager step's saving for envs stepped on past their episode's end).
+        computed (an eager CPU step's saving for envs stepped on past their episode's end,
+        :func:`~rlplat.envs.kinematics.blocked_search`).
         """
         last = self._meeting
-        if running is None or last is None or torch.compiler.is_compiling() or running.all():
+        if running is None or last is None or not blocked_search(p.device) or running.all():
             return self._meet(p, v, slice(None))
         if not running.any():
             return last
