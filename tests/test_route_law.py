@@ -198,6 +198,23 @@ def test_the_search_in_blocks_gives_the_full_searchs_answer(device):
         assert (~found).sum() >= 10
 
 
+def test_any_blocks_give_the_same_answer(monkeypatch):
+    # The blocks are where the search pauses, in any order, repeated or out of range.
+    from rlplat.envs import kinematics
+
+    g = torch.Generator().manual_seed(5)
+    own, other = torch.rand(512, 3, generator=g) * 80, torch.rand(512, 3, generator=g) * 80
+    route = other.unsqueeze(-2) + torch.rand(512, 4, 3, generator=g) * 100 - 50
+    speeds = torch.rand(2, 512, generator=g) * 4 + 0.5
+    args = (own, speeds[0], other, route, speeds[1])
+    kwargs = {"times": route_times(60.0), "lag": 0.5, "reach": 1.2}
+    expected = route_intercept(*args, **kwargs)
+    for blocks in [(), (32, 0, 8, 8), (500, -3, 239, 1)]:
+        monkeypatch.setattr(kinematics, "SEARCH_BLOCKS", blocks)
+        for got, want in zip(route_intercept(*args, **kwargs), expected, strict=True):
+            assert torch.equal(got, want), blocks
+
+
 def test_an_env_stepped_past_its_episode_end_keeps_its_meeting_point(scenarios):
     # An evaluation steps every env of a wave until the last episode ends: an env whose
     # episode has ended skips the search and keeps the point of the step it ended on; an env

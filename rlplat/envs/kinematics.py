@@ -256,7 +256,7 @@ def route_intercept(
     else:  # in blocks: a block is searched only by the pursuers without a point yet
         first = torch.full(own.shape[:1], -1, dtype=torch.int64, device=own.device)
         rows, lo = torch.arange(first.shape[0], device=own.device), 0
-        for hi in (*(b for b in SEARCH_BLOCKS if b < n_t), n_t):
+        for hi in (*sorted({b for b in SEARCH_BLOCKS if 0 < b < n_t}), n_t):
             index, hit = search(rows if lo else None, lo, hi)
             first[rows[hit]] = index[hit]
             rows, lo = rows[~hit], hi
