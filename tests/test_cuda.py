@@ -23,9 +23,9 @@ V11 = "drone=attacker_v11"  # the default: route law, pursuit_conform, meeting p
 @pytest.mark.parametrize(
     ("overrides", "set_overrides", "steps", "atol"),
     # GPU kernels round differently from the CPU's. Network-flown defenders feed that back
-    # through the closed loop and the last bits grow (on an H200 the observations differed by
-    # 2e-5 at step 20, by more than 1e-4 from step 25 and by 2e-3 at step 40), so with them the
-    # rollouts are held together over a shorter horizon (of shorter episodes).
+    # through the closed loop and the last bits grow (on an H200, in 3-s episodes, the
+    # observations differed by 2e-5 at step 20, by more than 1e-4 from step 25, up to 2e-3 in
+    # 40 steps), so with them the rollouts are held together over a shorter horizon.
     [
         (("drone=attacker_v4",), ("scenario.strategy_mix.nn=0",), 150, 1e-4),
         ((V11,), ("scenario.strategy_mix.nn=0",), 150, 1e-4),
