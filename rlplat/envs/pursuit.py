@@ -313,7 +313,8 @@ class PursuitEnv(EnvBase):
         self.route_residual = torch.zeros(num_envs, m, 3, device=self.device)
         self.route_deviation = torch.zeros(num_envs, m, device=self.device)
         # Whether each env's episode has ended (done) since its reset: an env stepped on past
-        # its end (as an evaluation's waves do) skips the meeting point's search.
+        # its end (as an evaluation's waves do) skips the meeting point's search, where the
+        # search is blocked (eager, on the CPU: kinematics.blocked_search).
         self.ended = torch.zeros(num_envs, dtype=torch.bool, device=self.device)
         self._make_specs(num_envs)
 
