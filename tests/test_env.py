@@ -71,6 +71,7 @@ def test_registries_match_config_groups():
         "attacker_v10",
         "attacker_v11",
         "attacker_v12",
+        "attacker_v13",
         "defender_v1",
     }
 
@@ -89,6 +90,7 @@ def test_registries_match_config_groups():
         ("attacker_v10", 20),
         ("attacker_v11", 24),
         ("attacker_v12", 24),
+        ("attacker_v13", 24),
     ],
 )
 def test_drone_bundles_pick_their_observation_and_cli_wins(scenarios, drone, dim):

@@ -320,6 +320,8 @@ def _spec():
          "CORRECTION to the route-intercept law", 24),
         ("attacker_v12", "route_law", "a correction to the route-intercept law",
          "CORRECTION to the route-intercept law", 24),
+        ("attacker_v13", "route_law", "a correction to the route-intercept law, gated on the "
+         "defender's route deviation", "GATED: the correction is multiplied by", 24),
     ],
 )  # fmt: skip
 def test_a_guided_controller_exports_with_its_guidance(
@@ -344,7 +346,8 @@ def test_a_guided_controller_exports_with_its_guidance(
     if path is not None:
         assert path["lag"] == 0.9 and path["gain"] == 1.0 and path["acceptance"] == 1.0
         law = action["guidance"]  # attacker_v12's law allows for the attacker's start-up
-        assert path["start_lag"] == law["start_lag"] == (0.5 if drone == "attacker_v12" else 0)
+        lagged = drone in ("attacker_v12", "attacker_v13")
+        assert path["start_lag"] == law["start_lag"] == (0.5 if lagged else 0)
     conformity = card["interface"].get("route_conformity")  # what the caller keeps per defender
     assert (conformity is not None) == (obs_dim == 24)
     if conformity is not None:
@@ -368,7 +371,7 @@ def test_a_guided_controller_exports_with_its_guidance(
         del state["interface"]["route_path"]["start_lag"]
         state["interface"]["route_path"]["lag"] = 0.9
         torch.save(state, ckpt)
-        if drone == "attacker_v12":
+        if lagged:
             with pytest.raises(
                 ConfigError, match=r"'start_lag': 0.0}, this env's .*'start_lag': 0.5"
             ):

@@ -472,3 +472,92 @@ def test_the_route_law_refuses_a_negative_time(scenarios, key):
     with pytest.raises(ConfigError, match=rf"^route_intercept.{key}: .*inf"):
         make_scripted_policy("route_intercept", make_env(PLAIN, scenarios=scenarios),
                              **{key: math.inf})  # fmt: skip
+
+
+# A correction gated on the route deviation (attacker_v13) --------------------------------
+
+V13 = "drone=attacker_v13"  # attacker_v12 with the correction gated on the route deviation
+
+
+def test_the_gate_scales_the_correction_by_the_route_deviation():
+    from rlplat.envs.components import RouteLawAction
+
+    gated = RouteLawAction(gate_low=1.5, gate_high=2.5)
+    plain = RouteLawAction()
+    action = torch.tensor([[1.0, -1.0, 0.5]]).expand(4, 3)
+    guidance = torch.full((4, 3), 0.1)
+    speed = torch.full((4,), 4.0)
+    deviation = torch.tensor([0.0, 1.5, 2.0, 9.0])
+    flown = gated(action, speed, guidance, deviation)
+    reach = torch.tensor([0.0, 0.0, 0.5, 1.0]).unsqueeze(-1)
+    torch.testing.assert_close(flown, plain(action * reach, speed, guidance))
+    torch.testing.assert_close(flown[:2], (guidance * 4.0)[:2])  # shut: the law alone
+    with pytest.raises(ValueError, match="needs the route deviation"):
+        gated(action, speed, guidance)
+
+
+def test_a_gated_env_flies_the_correction_scaled_by_the_deviation_it_observed(scenarios):
+    # The env gates with the route deviation the policy saw: the same rollout as an ungated
+    # env flown with the action already scaled by that observation's gate.
+    n, lo, hi = len(scenarios.split("val")), 0.5, 3.0
+    gated = make_env(V11, f"action.gate_low={lo}", f"action.gate_high={hi}", scenarios=scenarios,
+                     num_envs=n, split="val")  # fmt: skip
+    plain = make_env(V11, scenarios=scenarios, num_envs=n, split="val")
+    names = [f["name"] for f in gated.obs_fn.features()]
+    deviation = names.index("route_deviation")  # the observation's raw m/s^2 (scaled in the net)
+    g = torch.Generator().manual_seed(0)
+    a, b = gated.reset(), plain.reset()
+    fractional = 0
+    for _ in range(60):
+        action = torch.rand(n, 3, generator=g) * 2 - 1
+        d = a["observation"][:, deviation]
+        reach = ((d - lo) / (hi - lo)).clamp(0, 1)
+        fractional += int(((reach > 0) & (reach < 1)).sum())
+        a = gated.step(a.set("action", action))["next"]
+        b = plain.step(b.set("action", action * reach.unsqueeze(-1)))["next"]
+        assert torch.equal(a["positions"], b["positions"])
+    assert fractional > 0  # the gate was partly open somewhere
+
+
+def test_a_gated_correction_flies_only_its_law_where_the_defender_keeps_its_route(scenarios):
+    n = len(scenarios.split("val"))
+    shut = make_env(V11, "action.gate_low=1000", "action.gate_high=1001", scenarios=scenarios,
+                    num_envs=n, split="val")  # fmt: skip
+    law = make_env(V11, scenarios=scenarios, num_envs=n, split="val")
+    a, b = shut.reset(), law.reset()
+    g = torch.Generator().manual_seed(1)
+    for _ in range(40):
+        a = shut.step(a.set("action", torch.rand(n, 3, generator=g) * 2 - 1))["next"]
+        b = law.step(b.set("action", torch.zeros(n, 3)))["next"]
+        assert torch.equal(a["positions"], b["positions"])
+    # Through the gate the route-intercept law flies (a zero correction), no other script.
+    assert make_scripted_policy("route_intercept", shut)(shut.reset())["action"].abs().max() == 0
+    with pytest.raises(ConfigError, match="proportional_navigation cannot be flown through "
+                       "action=route_law with a gate"):  # fmt: skip
+        make_scripted_policy("proportional_navigation", shut)
+
+
+def test_the_gate_refuses_a_bad_range_and_an_observation_without_the_deviation(scenarios):
+    for knobs, match in (
+        (["action.gate_low=2", "action.gate_high=1"], r"^action.gate_high: must be > "),
+        (["action.gate_low=1", "action.gate_high=1"], r"^action.gate_high: must be > "),
+        (["action.gate_low=1"], r"^action.gate_high: 0 turns the gate off"),
+        (["action.gate_low=-1", "action.gate_high=1"], r"^action.gate_low: must be >= 0"),
+    ):
+        with pytest.raises(ConfigError, match=match):
+            make_env(V11, *knobs, scenarios=scenarios, num_envs=2)
+    with pytest.raises(ConfigError, match="^action.gate_high: the gate reads the route "
+                       "deviation that observation=pursuit_conform reports; this run's "
+                       "observation is pursuit_intercept$"):  # fmt: skip
+        make_env(V13, "observation=pursuit_intercept", scenarios=scenarios, num_envs=2)
+
+
+def test_the_gated_bundle_starts_from_its_law_and_states_the_gate_in_its_card(scenarios):
+    env = make_env(V13, scenarios=scenarios, num_envs=2)
+    assert (env.action_fn.gate_low, env.action_fn.gate_high) == (1.5, 2.5)
+    assert (env.action_fn.homing_time, env.action_fn.start_lag) == (0.5, 0.5)  # attacker_v12's
+    card = env.action_fn.card()
+    assert card["guidance"]["gate"] == {"low": 1.5, "high": 2.5}
+    assert "gate(d) = clamp((d - 1.5) / 1, 0, 1)" in card["unit"]
+    assert any(line.startswith("GATED") for line in env.action_fn.describe())
+    assert "gate" not in make_env(V11, scenarios=scenarios, num_envs=2).action_fn.card()["guidance"]

@@ -339,7 +339,17 @@ def make_scripted_policy(name: str, env: PursuitEnv, **kwargs: Any) -> TensorDic
         **{"gain": getattr(env, scripted.gain), **env_args, **kwargs},
     )
     if getattr(env.action_fn, "guided", False):
-        if not getattr(env.action_fn, "invertible", True):
+        # A gated correction flies only its own law where the gate is shut: through it, the
+        # route-intercept law (a zero correction) and nothing else.
+        gated = getattr(env.action_fn, "gated", False)
+        own_law = gated and name == "route_intercept" and not kwargs
+        if gated and not own_law:
+            raise ConfigError(
+                f"policy: {name} cannot be flown through action={env.action_fn.name} with a gate "
+                "(action.gate_high > 0: where the defender keeps its route the correction is shut "
+                "and only the law flies); valid: route_intercept, or fly it on action=velocity"
+            )
+        if not getattr(env.action_fn, "invertible", True) and not own_law:
             raise ConfigError(
                 f"policy: {name} cannot be flown through action={env.action_fn.name} (its "
                 "actions set the guidance law's parameters; fly it on action=velocity, or give "

@@ -660,6 +660,11 @@ class RouteLawAction(GuidedVelocityAction):
         start_lag: s, the attacker's start-up lag the meeting point allows for: a point the
             attacker could reach only by flying at full speed from this instant is one its
             velocity dynamics cannot keep.
+        gate_low, gate_high: m/s^2, the correction's gate on how far the nearest defender
+            departs from its route (``route_deviation`` of ``observation=pursuit_conform``, as
+            the policy saw it): the correction is scaled by ``clamp((deviation - gate_low) /
+            (gate_high - gate_low), 0, 1)``, so a defender that keeps its route is met by the
+            law alone and one that leaves it gets the whole correction. 0 and 0: no gate.
     """
 
     name = "route_law"
@@ -677,10 +682,66 @@ class RouteLawAction(GuidedVelocityAction):
         scale: float = 2.0,
         homing_time: float = 2.0,
         start_lag: float = 0.0,
+        gate_low: float = 0.0,
+        gate_high: float = 0.0,
     ) -> None:
         super().__init__(gain=gain, lead=lead, max_lead_time=max_lead_time, scale=scale)
         times = law_times("action", homing_time=homing_time, start_lag=start_lag)
         self.homing_time, self.start_lag = times["homing_time"], times["start_lag"]
+        for name, v in (("gate_low", gate_low), ("gate_high", gate_high)):
+            if not v >= 0:
+                raise ConfigError(f"action.{name}: must be >= 0, got {v}")
+        if gate_high > 0 and not gate_high > gate_low:
+            raise ConfigError(
+                f"action.gate_high: must be > action.gate_low={gate_low:g} (or both 0: no gate), "
+                f"got {gate_high:g}"
+            )
+        if gate_high == 0 and gate_low > 0:
+            raise ConfigError(
+                f"action.gate_high: 0 turns the gate off, but action.gate_low is {gate_low:g}; "
+                "set gate_high > gate_low, or both to 0"
+            )
+        self.gate_low, self.gate_high = float(gate_low), float(gate_high)
+
+    @property
+    def gated(self) -> bool:
+        """Whether the correction is gated on the defender's route deviation."""
+        return self.gate_high > 0
+
+    @property
+    def reads_conformity(self) -> bool:
+        """Whether the env must pass the route deviation the policy saw (``deviation``)."""
+        return self.gated
+
+    @classmethod
+    def flies_any_command(cls, cfg: Mapping[str, Any]) -> bool:
+        """A gated correction flies only the law where the defender keeps its route."""
+        return not float(cfg.get("gate_high", 0.0) or 0.0) > 0
+
+    @property
+    def invertible(self) -> bool:
+        """Whether :meth:`inverse` flies any command: not through a gate."""
+        return not self.gated
+
+    def reach(self, deviation: Tensor) -> Tensor:
+        """The gate (*B, 1) in [0, 1] for route deviations ``deviation`` (*B,) m/s^2."""
+        span = self.gate_high - self.gate_low
+        return ((deviation - self.gate_low) / span).clamp(0.0, 1.0).unsqueeze(-1)
+
+    def __call__(
+        self,
+        action: Tensor,
+        max_speed: Tensor,
+        guidance: Tensor | None = None,
+        deviation: Tensor | None = None,
+    ) -> Tensor:
+        """As :class:`GuidedVelocityAction`; a gated action also needs ``deviation`` (*B,)
+        m/s^2, the nearest defender's route deviation in the state the policy observed."""
+        if self.gated:
+            if deviation is None:
+                raise ValueError("action route_law: a gated correction needs the route deviation")
+            action = action.clamp(-1.0, 1.0) * self.reach(deviation)
+        return super().__call__(action, max_speed, guidance)
 
     def guidance(
         self,
@@ -699,6 +760,19 @@ class RouteLawAction(GuidedVelocityAction):
         aim, due, reachable = meeting
         speed = max_speed.unsqueeze(-1)
         return route_law(homing, aim, due, reachable, speed, self.gain, self.homing_time)
+
+    def card(self) -> dict[str, Any]:
+        card = super().card()
+        if self.gated:
+            card["unit"] = (
+                f"1: a correction to {self.corrects[0]}, gated on the defender's route "
+                f"deviation d (the observation's route_deviation): the velocity command is "
+                f"clamp(law + {self.scale:g} * gate(d) * action, -1, 1) times the drone's maximum "
+                f"speed per axis, gate(d) = clamp((d - {self.gate_low:g}) / "
+                f"{self.gate_high - self.gate_low:g}, 0, 1)"
+            )
+            card["guidance"]["gate"] = {"low": self.gate_low, "high": self.gate_high}
+        return card
 
     def _law_card(self) -> dict[str, Any]:
         return {
@@ -720,6 +794,16 @@ class RouteLawAction(GuidedVelocityAction):
             f"until the defender is due within {self.homing_time:g} s,",
             f"then proportional navigation (lead {self.lead:g}, max lead time "
             f"{self.max_lead_time:g} s; rlplat.envs.kinematics.route_law).",
+            *(
+                [
+                    "GATED: the correction is multiplied by clamp((d - "
+                    f"{self.gate_low:g}) / {self.gate_high - self.gate_low:g}, 0, 1),",
+                    "d the route_deviation input feature (m/s^2): 0 while the defender keeps its",
+                    "route (the law alone), 1 once it departs from it.",
+                ]
+                if self.gated
+                else []
+            ),
         ]
 
 

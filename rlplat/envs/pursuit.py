@@ -13,7 +13,13 @@ from torch import Tensor
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from rlplat.envs.components import DroneView, Reward, RewardContext, inside_ellipsoid
+from rlplat.envs.components import (
+    OBSERVATIONS,
+    DroneView,
+    Reward,
+    RewardContext,
+    inside_ellipsoid,
+)
 from rlplat.envs.kinematics import (
     blocked_search,
     follow_route,
@@ -246,6 +252,14 @@ class PursuitEnv(EnvBase):
         if self._conforms and learner != "attacker":
             raise ConfigError("observation: a defender's route conformity is an attacker's; "
                               f"this run's learner is the {learner}")  # fmt: skip
+        # A correction gated on the route deviation reads the one its policy saw.
+        self._gated = bool(getattr(action, "reads_conformity", False))
+        if self._gated and not getattr(observation, "reads_conformity", False):
+            shown = next((k for k, c in OBSERVATIONS.items() if type(observation) is c),
+                         type(observation).__name__)  # fmt: skip
+            raise ConfigError("action.gate_high: the gate reads the route deviation that "
+                              "observation=pursuit_conform reports; this run's observation is "
+                              f"{shown}")  # fmt: skip
         self._meets = bool(getattr(action, "reads_route", False))  # the guidance's meeting point
         meets = self._meets or getattr(observation, "reads_intercept", False)
         if meets and learner != "attacker":
@@ -278,6 +292,7 @@ class PursuitEnv(EnvBase):
         self.capture_radius = float(capture_radius)
         self._route_times = route_times(self.max_steps * self.control_period, self.device)
         self._meeting: tuple[Tensor, Tensor, Tensor] | None = None  # set by every output
+        self._deviation_seen: Tensor | None = None  # each attacker's, set by every output
         self.ground_altitude = float(ground_altitude)
         self.semi_axes = torch.tensor(vision_semi_axes, dtype=torch.float32, device=self.device)
         self.terminate_out_of_view = bool(terminate_out_of_view)
@@ -466,7 +481,9 @@ class PursuitEnv(EnvBase):
         p, v = self.dynamics.position, self.dynamics.velocity
         target, route_done = self._target()
         guidance = self.guidance(p, v, self.acceleration, self._meeting) if self._guided else None
-        own = self.action_fn(action.reshape(n, t, -1), self.max_speed[:, self.team], guidance)
+        gate = {"deviation": self._deviation_seen} if self._gated else {}
+        own = self.action_fn(action.reshape(n, t, -1), self.max_speed[:, self.team], guidance,
+                             **gate)  # fmt: skip
         if self.learner == ATTACKER:
             attack, defend = own, self._defender_command(p, v, target, route_done)
         else:
@@ -725,6 +742,7 @@ class PursuitEnv(EnvBase):
             near = nearest(p[:, self.attackers], p[:, self.defenders], targets(self.caught))
             residual = gather_drones(self.route_residual, near)
             deviation = self.route_deviation.gather(1, near)
+            self._deviation_seen = deviation  # a gated correction's, in the next step
             view = replace(view, route_residual=residual, route_deviation=deviation)
         if "a" in self.obs_fn.other_layout:  # an observation that reads accelerations
             a = self.acceleration

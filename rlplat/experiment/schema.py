@@ -262,6 +262,8 @@ ACTION_KNOBS: dict[str, Rule] = {
     "correction_reach": NON_NEGATIVE,
     "homing_time": NON_NEGATIVE,
     "start_lag": NON_NEGATIVE,
+    "gate_low": NON_NEGATIVE,
+    "gate_high": NON_NEGATIVE,
 }
 #: Component groups: registry, knob rules, and the arguments the env factory passes itself.
 COMPONENTS: dict[str, tuple[Mapping[str, Any], Mapping[str, Rule], tuple[str, ...]]] = {
@@ -363,11 +365,23 @@ def _check_train_fields(c: Mapping[str, Any]) -> None:
             f"drone.learner is the {learner}; valid: {', '.join(valid)}"
         )
     action = ACTIONS.get(c["action"].get("name"))
-    if policy != "random" and action is not None and not action.flies_any_command(c["action"]):
+    own_law = policy == "route_intercept" and c["action"].get("name") == "route_law"
+    if (
+        policy != "random"
+        and not own_law
+        and action is not None
+        and not action.flies_any_command(c["action"])
+    ):
+        why, valid_here = (
+            ("a gated correction flies only its law where the defender keeps its route",
+             "random, route_intercept")
+            if c["action"].get("name") == "route_law"
+            else ("its actions set the guidance law's parameters; action.correction_reach >= 2 "
+                  "flies it", "random")
+        )  # fmt: skip
         raise ConfigError(
             f"algo.init_policy: {show(policy)} cannot be flown through action="
-            f"{c['action']['name']} (its actions set the guidance law's parameters; "
-            "action.correction_reach >= 2 flies it); valid: random"
+            f"{c['action']['name']} ({why}); valid: {valid_here}"
         )
     first_update = max(algo["batch_size"], algo["init_random_frames"] * _learning_drones(c))
     if algo["buffer_size"] < first_update:
