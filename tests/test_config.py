@@ -153,6 +153,13 @@ BAD_TRAIN = [
     (["algo.init_policy=x"], "algo.init_policy", "unknown 'x'; valid: random, pure_pursuit"),
     (["algo.init_policy=setpoint_follower"], "algo.init_policy", "'setpoint_follower'"),
     (["drone=defender_v1", "algo.init_policy=pure_pursuit"], "algo.init_policy", "pure_pursuit"),
+    (
+        ["drone=attacker_v13", "algo.init_policy=proportional_navigation"],
+        "algo.init_policy",
+        "a gated correction flies only its law where the defender keeps its route); valid: "
+        "random, route_intercept",
+    ),
+    (["action.gate_high=-1"], "action.gate_high", "-1"),
     (["algo.frames_per_batch=100"], "algo.frames_per_batch", "100"),
     (["algo.buffer_size=1000"], "algo.buffer_size", "1000"),
     (["+algo.foo=1"], "algo.foo", "valid: name, num_envs"),
