@@ -5,8 +5,8 @@ Every scenario of a split is flown by the route-intercept law (``drone=attacker_
 Per axis, the route flyers' mean acceleration over each control period is fitted by least
 squares to ``rate * (c - v)``, c the setpoint follower's command and v the velocity at the
 period's start; the lag of a first-order lag with that mean rate is ``-dt / ln(1 - rate dt)``.
-Then the observation's ``route_deviation`` (feature 17) is summarised for the route flyers
-and the network defenders in play, after the take-off (from step 20).
+Then the observation's ``route_deviation`` (feature 17) is summarised, by percentiles, for the
+route flyers and the network defenders in play, after the take-off (from step 20).
 
     .venv/bin/python benchmarks/route_conformity.py [--scenarios DIR] [--split val]
 """
@@ -64,12 +64,16 @@ def main() -> None:
         rate = float((e * a).sum() / (e * e).sum())
         lag = -dt / math.log(1.0 - rate * dt) if 0 < rate * dt < 1 else float("nan")
         print(f"| {name} | {rate:.3f} | {lag:.2f} |")
-    print("\n| defender | median route_deviation [m/s^2] | 90th percentile |\n|---|---|---|")
+    # The percentiles a gate on the deviation (action.gate_low, gate_high) is set from.
+    levels = (0.1, 0.25, 0.5, 0.9, 0.99, 0.999)
+    header = " | ".join(f"p{100 * q:g}" for q in levels)
+    print(f"\nroute_deviation [m/s^2] by percentile\n\n| defender | {header} |")
+    print("|---|" + "---|" * len(levels))
     for kind, rows in (("route flyer", ~network), ("network", network)):
         seen = deviation[:, 20:][(playing & rows.unsqueeze(1))[:, 20:]]
         if seen.numel():
-            q = torch.quantile(seen, torch.tensor([0.5, 0.9]))
-            print(f"| {kind} | {q[0]:.2f} | {q[1]:.2f} |")
+            q = torch.quantile(seen, torch.tensor(levels))
+            print(f"| {kind} | " + " | ".join(f"{x:.2f}" for x in q.tolist()) + " |")
 
 
 if __name__ == "__main__":
