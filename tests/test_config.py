@@ -51,6 +51,7 @@ def test_every_group_has_options():
 NEEDS = {
     "dynamics=airsim": ["algo.num_envs=1"],
     "action=guidance_law": ["algo.init_policy=random"],
+    "action=augmented_law": ["algo.init_policy=random"],
 }
 
 
@@ -71,6 +72,21 @@ def test_attacker_v9_flies_a_corrected_law_and_a_group_choice_replaces_it():
     guided = compose_config("train", ["drone=attacker_v9", "action=guided_velocity"])
     assert guided.action.name == "guided_velocity" and "correction_reach" not in guided.action
     validate_train_config(guided)  # its scripted start is the bundle's random one
+
+
+@pytest.mark.parametrize("drone", [o.split("=")[1] for o in OPTIONS if o.startswith("drone=")])
+def test_every_bundle_takes_the_plain_action_from_the_command_line(drone):
+    # A bundle's action knobs live in its action option (route_law_held, route_law_gated), so
+    # another action on the command line replaces them with it.
+    cfg = compose_config("train", [f"drone={drone}", "action=velocity"])
+    assert OmegaConf.to_container(cfg.action) == {"name": "velocity"}
+    validate_train_config(cfg)
+
+
+def test_attacker_v13_gates_the_law_of_attacker_v12():
+    v12, v13 = (compose_config("train", [f"drone=attacker_v{i}"]).action for i in (12, 13))
+    assert (v12.homing_time, v12.start_lag, v12.gate_high) == (0.5, 0.5, 0.0)
+    assert {**v12, "gate_low": 1.5, "gate_high": 2.5} == dict(v13)
 
 
 @pytest.mark.parametrize(

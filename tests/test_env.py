@@ -46,14 +46,19 @@ def test_registries_match_config_groups():
         == stems("observation")
     )
     # An action file is a registry entry or derives from one through its defaults list (e.g.
-    # corrected_law: guidance_law with a correction): its composed name is a registry key,
+    # corrected_law: guidance_law with a correction; route_law_gated: route_law_held with a
+    # gate, itself route_law with other times): its composed name is a registry key,
     # and every registry key has a file of its own name.
     names = {s: compose_config("train", [f"action={s}"]).action.name for s in stems("action")}
     assert set(names.values()) == set(ACTIONS) <= stems("action")
     assert all(names[key] == key for key in ACTIONS)
     for stem in stems("action") - set(ACTIONS):
-        raw = OmegaConf.load(CONF / "action" / f"{stem}.yaml")
-        assert "name" not in raw and raw.defaults[0] == names[stem], stem
+        base = stem  # follow the first defaults entry down to the registry entry's file
+        while base not in ACTIONS:
+            raw = OmegaConf.load(CONF / "action" / f"{base}.yaml")
+            assert "name" not in raw and raw.defaults[0] in stems("action"), base
+            base = raw.defaults[0]
+        assert base == names[stem], stem
     for s in stems("reward"):  # composed: a reward file may derive from another
         cfg = compose_config("train", [f"reward={s}"]).reward
         Reward(**cfg)  # every term known, every key a constructor argument
