@@ -349,7 +349,7 @@ def make_scripted_policy(name: str, env: PursuitEnv, **kwargs: Any) -> TensorDic
                 "(action.gate_high > 0: where the defender keeps its route the correction is shut "
                 "and only the law flies); valid: route_intercept, or fly it on action=velocity"
             )
-        if not getattr(env.action_fn, "invertible", True) and not own_law:
+        if not gated and not getattr(env.action_fn, "invertible", True):
             raise ConfigError(
                 f"policy: {name} cannot be flown through action={env.action_fn.name} (its "
                 "actions set the guidance law's parameters; fly it on action=velocity, or give "

@@ -705,13 +705,9 @@ class RouteLawAction(GuidedVelocityAction):
 
     @property
     def gated(self) -> bool:
-        """Whether the correction is gated on the defender's route deviation."""
+        """Whether the correction is gated on the defender's route deviation (the env then
+        passes the deviation the policy saw, ``deviation``)."""
         return self.gate_high > 0
-
-    @property
-    def reads_conformity(self) -> bool:
-        """Whether the env must pass the route deviation the policy saw (``deviation``)."""
-        return self.gated
 
     @classmethod
     def flies_any_command(cls, cfg: Mapping[str, Any]) -> bool:

@@ -253,7 +253,7 @@ class PursuitEnv(EnvBase):
             raise ConfigError("observation: a defender's route conformity is an attacker's; "
                               f"this run's learner is the {learner}")  # fmt: skip
         # A correction gated on the route deviation reads the one its policy saw.
-        self._gated = bool(getattr(action, "reads_conformity", False))
+        self._gated = bool(getattr(action, "gated", False))
         if self._gated and not getattr(observation, "reads_conformity", False):
             shown = next((k for k, c in OBSERVATIONS.items() if type(observation) is c),
                          type(observation).__name__)  # fmt: skip
