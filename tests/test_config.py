@@ -176,6 +176,8 @@ BAD_TRAIN = [
         "random, route_intercept",
     ),
     (["action.gate_high=-1"], "action.gate_high", "-1"),
+    (["algo.evader_weight=0"], "algo.evader_weight", "0"),
+    (["drone=defender_v1", "algo.evader_weight=3"], "algo.evader_weight", "defender flies in"),
     (["algo.frames_per_batch=100"], "algo.frames_per_batch", "100"),
     (["algo.buffer_size=1000"], "algo.buffer_size", "1000"),
     (["+algo.foo=1"], "algo.foo", "valid: name, num_envs"),
@@ -411,6 +413,7 @@ SAC_PAPER_KEPT = {
     "actor_average": 0.0,
     "anchor_weight": 0.0,
     "failure_weight": 1.0,
+    "evader_weight": 1.0,
 }
 
 

@@ -7,6 +7,7 @@ import torch
 from rlplat.agents.checkpoint import load_checkpoint, load_policy
 from rlplat.errors import ConfigError
 from rlplat.experiment.config import compose_config
+from rlplat.scenarios import STRATEGIES
 
 
 def test_cli_run_writes_the_run_directory(scenarios, tmp_path, tiny, train_cli):
@@ -182,6 +183,32 @@ def test_failure_weight_draws_the_references_failures_more_often(
     assert f"fails {k} of {n} train scenarios; drawn 4 times as often: {share:.0f} %" in (
         caplog.text
     )
+
+
+def test_evader_weight_draws_the_network_defenders_more_often(
+    scenarios, tmp_path, tiny_run, caplog, monkeypatch
+):
+    from rlplat.envs.pursuit import ScenarioSampler
+
+    given, set_weights = [], ScenarioSampler.set_weights
+
+    def record(self, weights):
+        given.append((self.n, weights))
+        set_weights(self, weights)
+
+    monkeypatch.setattr(ScenarioSampler, "set_weights", record)
+    with caplog.at_level("INFO", logger="rlplat.experiment.training"):
+        tiny_run(scenarios, tmp_path, "algo.evader_weight=3")
+    train = scenarios.split("train")
+    evades = train["defender_strategy"][:, 0] == STRATEGIES.index("nn")
+    k, n = int(evades.sum()), len(train)
+    assert 0 < k < n, "the set must hold both strategies"
+    # The training env's walk, and only it, becomes draws: 3 for each network defender.
+    assert len(given) == 1 and given[0][0] == n
+    assert torch.equal(given[0][1], torch.where(evades, 3.0, 1.0))
+    share = 100 * 3 * k / (3 * k + n - k)
+    logged = f"{k} of {n} train scenarios have a network defender; drawn 3 times as often: "
+    assert f"{logged}{share:.0f} % of episodes" in caplog.text
 
 
 def test_actor_average_is_what_a_run_validates_checkpoints_and_resumes(

@@ -186,6 +186,7 @@ TRAIN_RULES: dict[str, Rule] = {
     "algo.anchor_weight": Num(ge=0),
     "algo.actor_average": Num(ge=0, le=1),
     "algo.failure_weight": Num(gt=0),
+    "algo.evader_weight": Num(gt=0),
     "algo.compile": flag,
     "drone.name": Text(),
     "drone.learner": Choice(ROLES),
@@ -363,6 +364,11 @@ def _check_train_fields(c: Mapping[str, Any]) -> None:
         raise ConfigError(
             f"algo.init_policy: {show(policy)} flies the {SCRIPTED[policy].role}, "
             f"drone.learner is the {learner}; valid: {', '.join(valid)}"
+        )
+    if algo["evader_weight"] != 1 and learner != "attacker":
+        raise ConfigError(
+            f"algo.evader_weight: {show(algo['evader_weight'])} weights the scenarios whose "
+            f"defender flies the network, drone.learner={learner} flies in its place; valid: 1"
         )
     action = ACTIONS.get(c["action"].get("name"))
     own_law = policy == "route_intercept" and c["action"].get("name") == "route_law"
@@ -547,6 +553,7 @@ RESUME_FREE: tuple[str, ...] = (
 #: flew: a saved config without such a key, resumed with that value, is the same config.
 ADDED_KEYS: dict[str, Any] = {
     "algo.failure_weight": 1.0,
+    "algo.evader_weight": 1.0,
     "action.accel_lead": 0.0,
     "action.accel_reach": 0.0,
     "action.correction_reach": 0.0,

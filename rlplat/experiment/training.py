@@ -48,7 +48,7 @@ from rlplat.experiment.factory import build_env, build_eval_env, resolve_scenari
 from rlplat.experiment.logger import Metrics, make_logger
 from rlplat.experiment.schema import check_resume, validate_train_config
 from rlplat.io import atomic_write_text
-from rlplat.scenarios import ScenarioSet
+from rlplat.scenarios import STRATEGIES, ScenarioSet
 
 log = logging.getLogger(__name__)
 
@@ -154,8 +154,8 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     reference = fly_reference(cfg, run, "val", device)
     run.metrics.log({f"reference/{k}": v for k, v in reference.summary().items()}, state.frames)
     log.info("%s on the validation split: %s", REFERENCE[run.role], outcome(reference, run.role))
-    if algo.failure_weight != 1.0:
-        weight_failures(cfg, run, algo.failure_weight, device)
+    if algo.failure_weight != 1.0 or algo.evader_weight != 1.0:
+        weight_scenarios(cfg, run, algo, device)
 
     # Create the replay buffer and the collector
     buffer = TensorDictReplayBuffer(
@@ -323,21 +323,35 @@ def fly_reference(cfg: DictConfig, run: Run, split: str, device) -> EpisodeResul
     return evaluate(env, make_scripted_policy(REFERENCE[run.role], env))
 
 
-def weight_failures(cfg: DictConfig, run: Run, weight: float, device) -> None:
-    """Train on the scenarios the scripted reference fails (an attacker: no capture; a
-    defender: caught) ``weight`` times as often as on the others (``algo.failure_weight``):
-    the reference flown once on the train split, the env's walk replaced by weighted draws.
-    Where the reference already succeeds there is little to learn; where it fails is where a
-    policy can pass it."""
-    flown = fly_reference(cfg, run, "train", device)
-    failed = torch.zeros(len(run.scenarios.split("train")), dtype=torch.bool)
-    lost = ~flown.captured if run.role == "attacker" else flown.captured  # a defender is caught
-    failed[flown.scenario_index.cpu()] = lost.cpu()
-    run.env.sampler.set_weights(torch.where(failed, weight, 1.0))
-    k, n = int(failed.sum()), failed.numel()
-    share = 100 * weight * k / (weight * k + n - k)
-    log.info("%s fails %d of %d train scenarios; drawn %g times as often: %.0f %% of episodes",
-             REFERENCE[run.role], k, n, weight, share)  # fmt: skip
+def weight_scenarios(cfg: DictConfig, run: Run, algo: DictConfig, device) -> None:
+    """Replace the training env's walk over the train split by weighted draws.
+
+    ``algo.failure_weight``: the scenarios the scripted reference fails (an attacker: no
+    capture; a defender: caught; the reference flown once on the train split) are drawn that
+    many times as often; where the reference already succeeds there is little to learn.
+    ``algo.evader_weight``: the scenarios with a defender that flies the trained network
+    (strategy ``nn``, the one that leaves its route to evade) are drawn that many times as
+    often; where a law meets a route flyer on its route, an attacker's learned correction is
+    for those. A scenario's weight is the product of the two."""
+    train = run.scenarios.split("train")
+    weight = torch.ones(len(train))
+    if algo.failure_weight != 1.0:
+        flown = fly_reference(cfg, run, "train", device)
+        failed = torch.zeros(len(train), dtype=torch.bool)
+        lost = ~flown.captured if run.role == "attacker" else flown.captured
+        failed[flown.scenario_index.cpu()] = lost.cpu()
+        weight = torch.where(failed, algo.failure_weight * weight, weight)
+        k, n = int(failed.sum()), failed.numel()
+        log.info("%s fails %d of %d train scenarios; drawn %g times as often: %.0f %% of "
+                 "episodes", REFERENCE[run.role], k, n, algo.failure_weight,
+                 100 * float(weight[failed].sum() / weight.sum()))  # fmt: skip
+    if algo.evader_weight != 1.0:
+        evades = (train["defender_strategy"] == STRATEGIES.index("nn")).any(-1).cpu()
+        weight = torch.where(evades, algo.evader_weight * weight, weight)
+        log.info("%d of %d train scenarios have a network defender; drawn %g times as often: "
+                 "%.0f %% of episodes", int(evades.sum()), len(train), algo.evader_weight,
+                 100 * float(weight[evades].sum() / weight.sum()))  # fmt: skip
+    run.env.sampler.set_weights(weight)
 
 
 def seed_everything(seed: int, env: PursuitEnv) -> None:
