@@ -17,7 +17,7 @@ from rlplat.eval.episodes import evaluate
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 
-V11 = "drone=attacker_v11"  # the default: route law, pursuit_conform, meeting point on the GPU
+V11 = "drone=attacker_v11"  # route law, pursuit_conform, meeting point on the GPU
 
 
 @pytest.mark.parametrize(

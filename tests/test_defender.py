@@ -183,7 +183,8 @@ def test_a_network_defender_sees_what_its_observation_reads(mixed, tmp_path, obs
         )
 
     def rollout(network):
-        env = make_env(f"env.defender_network={network}", scenarios=mixed, split="val", num_envs=16)
+        env = make_env("drone=attacker_v3", f"env.defender_network={network}", scenarios=mixed,
+                       split="val", num_envs=16)  # fmt: skip
         torch.manual_seed(0)  # the same random attacker actions in both rollouts
         return env.rollout(20, break_when_any_done=False)
 
@@ -204,6 +205,7 @@ def test_nn_defenders_fly_the_network(mixed, defender_run, tmp_path):
         env = make_env(f"env.defender_network={network}", scenarios=mixed, split="val", num_envs=16)
         env.set_seed(0)
         torch.manual_seed(0)  # the attackers' random actions come from torch's global generator
+        # (on attacker_v3's plain velocity action: commands that do not depend on the defender)
         return env, env.rollout(20, break_when_any_done=False)
 
     env, hover = rollout(tmp_path / "hover.pt")
@@ -215,10 +217,14 @@ def test_nn_defenders_fly_the_network(mixed, defender_run, tmp_path):
     start, end = hover["positions"][:, 0, 1], hover["next", "positions"][:, -1, 1]
     moved = (end - start).norm(dim=-1)
     assert (moved[nn] < 1e-5).all() and (moved[~nn] > 1.0).all()
-    # Setpoint followers do not depend on the network; network-flown defenders do.
+    # Setpoint followers do not depend on the network; network-flown defenders do. An env
+    # whose episode ends flies the next scenario: each step is labelled by its own scenario.
+    assert torch.equal(hover["scenario_index"], learned["scenario_index"])
+    flown = mixed.split("val")["defender_strategy"][:, 0][hover["next", "scenario_index"][..., 0]]
+    by_net = flown == STRATEGIES.index("nn")
     d_hover, d_learned = hover["next", "positions"][:, :, 1], learned["next", "positions"][:, :, 1]
-    torch.testing.assert_close(d_hover[~nn], d_learned[~nn])
-    assert not torch.allclose(d_hover[nn], d_learned[nn])
+    torch.testing.assert_close(d_hover[~by_net], d_learned[~by_net])
+    assert not torch.allclose(d_hover[by_net], d_learned[by_net])
     check_env_specs(env, seed=0)
 
 

@@ -265,7 +265,7 @@ def test_a_law_action_refuses_bad_knobs(scenarios, key, value):
 
 
 def test_pursuit_state_adds_the_own_maximum_speed(scenarios):
-    env = make_env("observation=pursuit_state", scenarios=scenarios, num_envs=5, split="val")
+    env = make_env(PLAIN, "observation=pursuit_state", scenarios=scenarios, num_envs=5, split="val")
     td = env.reset()
     obs = td["observation"]
     assert obs.shape == (5, 10)

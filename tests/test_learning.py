@@ -69,6 +69,7 @@ def test_the_default_keeps_above_pure_pursuit_while_it_learns(
     from rlplat.agents.policies import make_scripted_policy
     from rlplat.eval.episodes import evaluate
     from rlplat.eval.report import read_scalars
+    from rlplat.experiment.evaluation import plain_action
     from rlplat.experiment.factory import build_env
 
     spec_cfg = compose_config("scenarios", ["out_dir=unused", *chase_pursuit])
@@ -86,9 +87,10 @@ def test_the_default_keeps_above_pure_pursuit_while_it_learns(
         ],
     )
     scenarios = ScenarioSet.load(tmp_path)
-    val = build_env(
-        cfg, scenarios=scenarios, split="val", num_envs=128, scenario_order="sequential"
-    )
+    val = build_env(  # pure pursuit on the plain velocity action (the default's is gated)
+        plain_action(cfg), scenarios=scenarios, split="val", num_envs=128,
+        scenario_order="sequential",
+    )  # fmt: skip
     pure_pursuit = evaluate(val, make_scripted_policy("pure_pursuit", val)).capture_rate
     assert pure_pursuit < BAR - 0.05, "the set must separate pure pursuit from the bar"
 

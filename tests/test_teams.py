@@ -303,7 +303,7 @@ def test_a_caught_drone_ends_its_own_rows():
 
 
 def test_pure_pursuit_team_catches_more_than_random(team_sets):
-    env = make_env(scenarios=team_sets[2, 1], split="val", num_envs=16)
+    env = make_env("action=velocity", scenarios=team_sets[2, 1], split="val", num_envs=16)
     chase = evaluate(env, make_scripted_policy("pure_pursuit", env))
 
     def random(td):
