@@ -153,13 +153,10 @@ def test_best_checkpoint_loads_as_a_deterministic_policy(scenarios, tmp_path, ti
     assert torch.equal(a.returns, b.returns)
 
 
-def test_failure_weight_draws_the_references_failures_more_often(
-    scenarios, tmp_path, tiny_run, caplog, monkeypatch
-):
-    from rlplat import make_env
-    from rlplat.agents.policies import make_scripted_policy
+@pytest.fixture
+def sampler_weights(monkeypatch) -> list:
+    """(n, weights) of every ScenarioSampler.set_weights call, in order."""
     from rlplat.envs.pursuit import ScenarioSampler
-    from rlplat.eval.episodes import evaluate
 
     given, set_weights = [], ScenarioSampler.set_weights
 
@@ -168,6 +165,17 @@ def test_failure_weight_draws_the_references_failures_more_often(
         set_weights(self, weights)
 
     monkeypatch.setattr(ScenarioSampler, "set_weights", record)
+    return given
+
+
+def test_failure_weight_draws_the_references_failures_more_often(
+    scenarios, tmp_path, tiny_run, caplog, sampler_weights
+):
+    from rlplat import make_env
+    from rlplat.agents.policies import make_scripted_policy
+    from rlplat.eval.episodes import evaluate
+
+    given = sampler_weights
     with caplog.at_level("INFO", logger="rlplat.experiment.training"):
         tiny_run(scenarios, tmp_path, "algo.failure_weight=4", "env.time_limit=10")
     n = len(scenarios.split("train"))
@@ -188,17 +196,9 @@ def test_failure_weight_draws_the_references_failures_more_often(
 
 
 def test_evader_weight_draws_the_network_defenders_more_often(
-    scenarios, tmp_path, tiny_run, caplog, monkeypatch
+    scenarios, tmp_path, tiny_run, caplog, sampler_weights
 ):
-    from rlplat.envs.pursuit import ScenarioSampler
-
-    given, set_weights = [], ScenarioSampler.set_weights
-
-    def record(self, weights):
-        given.append((self.n, weights))
-        set_weights(self, weights)
-
-    monkeypatch.setattr(ScenarioSampler, "set_weights", record)
+    given = sampler_weights
     with caplog.at_level("INFO", logger="rlplat.experiment.training"):
         tiny_run(scenarios, tmp_path, "algo.evader_weight=3")
     train = scenarios.split("train")
