@@ -177,7 +177,7 @@ BAD_TRAIN = [
     ),
     (["action.gate_high=-1"], "action.gate_high", "-1"),
     (["algo.evader_weight=0"], "algo.evader_weight", "0"),
-    (["drone=defender_v1", "algo.evader_weight=3"], "algo.evader_weight", "defender flies in"),
+    (["drone=defender_v1", "algo.evader_weight=3"], "algo.evader_weight", "is the defender"),
     (["algo.frames_per_batch=100"], "algo.frames_per_batch", "100"),
     (["algo.buffer_size=1000"], "algo.buffer_size", "1000"),
     (["+algo.foo=1"], "algo.foo", "valid: name, num_envs"),

@@ -202,7 +202,8 @@ def test_nn_defenders_fly_the_network(mixed, defender_run, tmp_path):
     )
 
     def rollout(network):
-        env = make_env(f"env.defender_network={network}", scenarios=mixed, split="val", num_envs=16)
+        env = make_env("drone=attacker_v3", f"env.defender_network={network}", scenarios=mixed,
+                       split="val", num_envs=16)  # fmt: skip
         env.set_seed(0)
         torch.manual_seed(0)  # the attackers' random actions come from torch's global generator
         # (on attacker_v3's plain velocity action: commands that do not depend on the defender)

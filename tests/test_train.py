@@ -213,6 +213,16 @@ def test_evader_weight_draws_the_network_defenders_more_often(
     assert f"{logged}{share:.0f} % of episodes" in caplog.text
 
 
+def test_evader_weight_needs_both_strategies_in_the_train_split(
+    tmp_path, tiny_run, write_small_set
+):
+    route_flyers = write_small_set(tmp_path / "set", "scenario.strategy_mix={setpoints: 1, nn: 0}")
+    n = len(route_flyers.split("train"))
+    with pytest.raises(ConfigError, match=rf"^algo\.evader_weight: 3 weights .* has 0 of {n}$"):
+        tiny_run(route_flyers, tmp_path / "run", "algo.evader_weight=3")
+    assert not (tmp_path / "run").exists()  # refused before any work
+
+
 def test_actor_average_is_what_a_run_validates_checkpoints_and_resumes(
     scenarios, tmp_path, tiny_run
 ):

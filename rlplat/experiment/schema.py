@@ -367,8 +367,8 @@ def _check_train_fields(c: Mapping[str, Any]) -> None:
         )
     if algo["evader_weight"] != 1 and learner != "attacker":
         raise ConfigError(
-            f"algo.evader_weight: {show(algo['evader_weight'])} weights the scenarios whose "
-            f"defender flies the network, drone.learner={learner} flies in its place; valid: 1"
+            f"algo.evader_weight: {show(algo['evader_weight'])} weights the network "
+            f"defenders' scenarios for an attacker; drone.learner is the {learner}; valid: 1"
         )
     action = ACTIONS.get(c["action"].get("name"))
     own_law = policy == "route_intercept" and c["action"].get("name") == "route_law"

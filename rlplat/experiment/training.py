@@ -124,6 +124,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
 
     # Create the environments
     scenarios = resolve_scenarios(cfg, cfg.scenarios_dir)
+    evaders = network_defenders(scenarios, algo.evader_weight)
     env = build_env(cfg, scenarios=scenarios, split="train", num_envs=algo.num_envs, device=device)
     train_env = make_train_env(env)
     val_env = make_eval_env(cfg, scenarios, "val", device, compiled=True)
@@ -155,7 +156,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     run.metrics.log({f"reference/{k}": v for k, v in reference.summary().items()}, state.frames)
     log.info("%s on the validation split: %s", REFERENCE[run.role], outcome(reference, run.role))
     if algo.failure_weight != 1.0 or algo.evader_weight != 1.0:
-        weight_scenarios(cfg, run, algo, device)
+        weight_scenarios(cfg, run, algo, evaders, device)
 
     # Create the replay buffer and the collector
     buffer = TensorDictReplayBuffer(
@@ -323,7 +324,27 @@ def fly_reference(cfg: DictConfig, run: Run, split: str, device) -> EpisodeResul
     return evaluate(env, make_scripted_policy(REFERENCE[run.role], env))
 
 
-def weight_scenarios(cfg: DictConfig, run: Run, algo: DictConfig, device) -> None:
+def network_defenders(scenarios: ScenarioSet, evader_weight: float) -> torch.Tensor:
+    """(n,) bool: the train scenarios with a defender that flies the network. Weighting them
+    (``algo.evader_weight``) needs both kinds in the split.
+
+    Raises:
+        ConfigError: a weight other than 1 and a split of one kind only.
+    """
+    train = scenarios.split("train")
+    evades = (train["defender_strategy"] == STRATEGIES.index("nn")).any(-1).cpu()
+    k, n = int(evades.sum()), len(train)
+    if evader_weight != 1.0 and not 0 < k < n:
+        raise ConfigError(
+            f"algo.evader_weight: {evader_weight:g} weights the network defenders' scenarios "
+            f"against the others; the train split has {k} of {n}"
+        )
+    return evades
+
+
+def weight_scenarios(
+    cfg: DictConfig, run: Run, algo: DictConfig, evades: torch.Tensor, device
+) -> None:
     """Replace the training env's walk over the train split by weighted draws.
 
     ``algo.failure_weight``: the scenarios the scripted reference fails (an attacker: no
@@ -333,25 +354,27 @@ def weight_scenarios(cfg: DictConfig, run: Run, algo: DictConfig, device) -> Non
     (strategy ``nn``, the one that leaves its route to evade) are drawn that many times as
     often; where a law meets a route flyer on its route, an attacker's learned correction is
     for those. A scenario's weight is the product of the two."""
-    train = run.scenarios.split("train")
-    weight = torch.ones(len(train))
+    n = len(evades)
+    failed = torch.zeros(n, dtype=torch.bool)
     if algo.failure_weight != 1.0:
         flown = fly_reference(cfg, run, "train", device)
-        failed = torch.zeros(len(train), dtype=torch.bool)
         lost = ~flown.captured if run.role == "attacker" else flown.captured
         failed[flown.scenario_index.cpu()] = lost.cpu()
-        weight = torch.where(failed, algo.failure_weight * weight, weight)
-        k, n = int(failed.sum()), failed.numel()
-        log.info("%s fails %d of %d train scenarios; drawn %g times as often: %.0f %% of "
-                 "episodes", REFERENCE[run.role], k, n, algo.failure_weight,
-                 100 * float(weight[failed].sum() / weight.sum()))  # fmt: skip
-    if algo.evader_weight != 1.0:
-        evades = (train["defender_strategy"] == STRATEGIES.index("nn")).any(-1).cpu()
-        weight = torch.where(evades, algo.evader_weight * weight, weight)
-        log.info("%d of %d train scenarios have a network defender; drawn %g times as often: "
-                 "%.0f %% of episodes", int(evades.sum()), len(train), algo.evader_weight,
-                 100 * float(weight[evades].sum() / weight.sum()))  # fmt: skip
+    weight = torch.where(failed, algo.failure_weight, 1.0)
+    weight = torch.where(evades, algo.evader_weight * weight, weight)
     run.env.sampler.set_weights(weight)
+
+    def share(drawn: torch.Tensor) -> float:  # percent of the episodes
+        return 100 * float(weight[drawn].sum() / weight.sum())
+
+    if algo.failure_weight != 1.0:
+        log.info("%s fails %d of %d train scenarios; drawn %g times as often: %.0f %% of "
+                 "episodes", REFERENCE[run.role], int(failed.sum()), n, algo.failure_weight,
+                 share(failed))  # fmt: skip
+    if algo.evader_weight != 1.0:
+        log.info("%d of %d train scenarios have a network defender; drawn %g times as often: "
+                 "%.0f %% of episodes", int(evades.sum()), n, algo.evader_weight,
+                 share(evades))  # fmt: skip
 
 
 def seed_everything(seed: int, env: PursuitEnv) -> None:
