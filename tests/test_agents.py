@@ -101,6 +101,7 @@ def test_compiled_update_matches_eager(scenarios, monkeypatch):
         "train", ["drone=attacker_v3", f"scenarios_dir={scenarios.path}", "algo.batch_size=64"]
     )
     env = build_env(cfg, scenarios=scenarios, split="train", num_envs=64)
+    torch.manual_seed(0)  # the same batch whichever tests ran before
     td = env.rand_step(env.reset())
     batch = td.select("observation", "action", ("next", "observation"), ("next", "reward"),
                       ("next", "done"), ("next", "terminated"))  # fmt: skip
@@ -121,6 +122,7 @@ def test_compiled_update_matches_eager(scenarios, monkeypatch):
                     compile=compile_,
                 )  # fmt: skip
             )
+        start = {k: v.clone() for k, v in agents[0].loss.state_dict().items()}
         # Past the warm-up, the compiled update runs without guard checks; it must still match,
         # also after a checkpoint is taken (state_dict must not change what the graph saw).
         for step in range(SACAgent.WARMUP_CALLS + 3):
@@ -134,10 +136,14 @@ def test_compiled_update_matches_eager(scenarios, monkeypatch):
             assert compiled["loss_qvalue"].item() == pytest.approx(
                 eager["loss_qvalue"].item(), rel=1e-3
             )
+        # The two paths round differently (fused kernels), and Adam turns a gradient element
+        # near 0 into a step of +-lr whichever its sign: a few elements may part by up to
+        # 2 lr a step. What the updates moved must agree to 1 % in norm.
         for (name, a), b in zip(
             agents[0].loss.state_dict().items(), agents[1].loss.state_dict().values(), strict=True
         ):
-            assert torch.allclose(a, b, atol=1e-4), name
+            moved = (a - start[name]).float().norm()
+            assert (a - b).float().norm() <= 0.01 * moved + 1e-6, name
 
 
 @pytest.mark.slow
