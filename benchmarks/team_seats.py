@@ -1,0 +1,131 @@
+"""Which seat of a team the learned correction helps: a policy trained alone, flown in every
+seat of a team (``evaluate.py lone_in_team=true``), against variants where a seat flies only
+the law its action corrects (a zero action).
+
+A network defender sees only its nearest attacker, so the two seats of a 2-vs-1 team play
+different parts: the nearer one is evaded, the farther one is not seen. Variants, each on the
+whole split:
+
+- ``policy``: every seat flies the checkpoint (the ``lone_in_team`` evaluation);
+- ``far-law`` / ``near-law``: the seat farther from (nearer to) the defender flies the law;
+- ``law``: every seat flies the law;
+- ``near:D1:D2``: the correction is scaled by ``clamp((D2 - d) / (D2 - D1), 0, 1)``, d the
+  seat's distance to the defender in m: whole within D1, none beyond D2 (a distance gate).
+
+Prints the capture rate of each variant, of the route flyers and of the network defenders.
+
+    .venv/bin/python benchmarks/team_seats.py RUN_DIR --scenarios data/scenarios/pursuit2v1 \\
+        [--split val] [--variants policy far-law near-law law near:10:20]
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+import torch
+from tensordict.nn import TensorDictModuleBase
+
+from rlplat.agents.checkpoint import actor_from_state, load_checkpoint
+from rlplat.agents.export import observation_key
+from rlplat.eval.episodes import evaluate
+from rlplat.experiment.evaluation import check_policy_fits, checkpoint_path, load_run_config
+from rlplat.experiment.factory import build_eval_env, eval_num_envs, resolve_scenarios
+from rlplat.scenarios import STRATEGIES
+
+
+class SeatVariant(TensorDictModuleBase):
+    """The actor's action (*B, seats, A), with a seat's correction scaled to 0 (the law) by
+    ``variant``; ``distance`` gives each seat's distance to the defender from its
+    observation."""
+
+    def __init__(self, actor, variant: str, obs_key, action_key, position: slice) -> None:
+        super().__init__()
+        self.actor, self.variant, self.position = actor, variant, position
+        self.obs_key, self.action_key = obs_key, action_key
+        self.in_keys, self.out_keys = [obs_key], [action_key]
+
+    def forward(self, td):
+        td = self.actor(td)
+        action = td.get(self.action_key)
+        distance = td.get(self.obs_key)[..., self.position].norm(dim=-1)  # (*B, seats)
+        nearest = distance <= distance.amin(-1, keepdim=True)
+        if self.variant == "policy":
+            scale = torch.ones_like(distance)
+        elif self.variant == "law":
+            scale = torch.zeros_like(distance)
+        elif self.variant == "far-law":
+            scale = nearest.to(distance.dtype)
+        elif self.variant == "near-law":
+            scale = (~nearest).to(distance.dtype)
+        else:  # near:D1:D2
+            low, high = (float(x) for x in self.variant.split(":")[1:])
+            scale = ((high - distance) / (high - low)).clamp(0.0, 1.0)
+        td.set(self.action_key, action * scale.unsqueeze(-1))
+        return td
+
+
+def check_variant(variant: str) -> str:
+    if variant in ("policy", "law", "far-law", "near-law"):
+        return variant
+    parts = variant.split(":")
+    try:
+        low, high = (float(x) for x in parts[1:])
+    except ValueError:
+        low = high = float("nan")
+    if parts[0] != "near" or len(parts) != 3 or not 0 <= low < high:
+        raise argparse.ArgumentTypeError(
+            f"variant: policy, law, far-law, near-law or near:D1:D2 with 0 <= D1 < D2, "
+            f"got {variant!r}"
+        )
+    return variant
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run_dir", type=Path, help="a training run trained alone (one attacker)")
+    parser.add_argument("--scenarios", required=True, help="a team's scenario set")
+    parser.add_argument("--split", default="val", choices=("train", "val", "test"))
+    parser.add_argument("--ckpt", default="best", choices=("best", "last"))
+    parser.add_argument(
+        "--variants", nargs="+", type=check_variant,
+        default=["policy", "far-law", "near-law", "law"],
+    )  # fmt: skip
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+
+    cfg = load_run_config(args.run_dir)
+    path = checkpoint_path(args.run_dir, args.ckpt)
+    state = load_checkpoint(path)
+    scenarios = resolve_scenarios(cfg, args.scenarios)
+    n = len(scenarios.split(args.split))
+    env = build_eval_env(cfg, scenarios=scenarios, split=args.split,
+                         num_envs=eval_num_envs(cfg, n))  # fmt: skip
+    if getattr(env.action_fn, "corrects", None) is None:
+        raise SystemExit(f"team_seats: action={cfg.action.name} corrects no law")
+    features = check_policy_fits(state, cfg, env, path, lone_in_team=True)
+    names = [f["name"] for f in env.obs_fn.features()]
+    at = names.index("(p_opponent0 - p_own).x")
+    actor = actor_from_state(state, env.drone_action_spec, "cpu", env.group, features)
+    network = scenarios.split(args.split)["defender_strategy"][:, 0] == STRATEGIES.index("nn")
+
+    route, nets = int((~network).sum()), int(network.sum())
+    print(f"{cfg.drone.name} ({args.run_dir}, {args.ckpt}) in each of {env.num_attackers} "
+          f"seats, {n} {args.split} scenarios of {args.scenarios}: "
+          f"{route} route flyers, {nets} network defenders\n")  # fmt: skip
+    print("| variant | captured | route flyers | network defenders |")
+    print("|---|---|---|---|")
+    for variant in args.variants:
+        module = SeatVariant(actor, variant, observation_key(env.group), env.action_key,
+                             slice(at, at + 3))  # fmt: skip
+        results = evaluate(env, module)
+        captured = results.captured  # one row per scenario of the split, in order
+        rates = [captured.float().mean(), captured[~network].float().mean(),
+                 captured[network].float().mean()]  # fmt: skip
+        print(f"| {variant} | " + " | ".join(f"{r:.4f}" for r in rates) + " |")
+    env.close()
+
+
+if __name__ == "__main__":
+    main()
