@@ -29,6 +29,7 @@ from tensordict.nn import TensorDictModuleBase
 
 from rlplat.agents.checkpoint import actor_from_state, load_checkpoint
 from rlplat.agents.export import observation_key
+from rlplat.errors import ConfigError
 from rlplat.eval.episodes import evaluate
 from rlplat.experiment.evaluation import check_policy_fits, checkpoint_path, load_run_config
 from rlplat.experiment.factory import build_eval_env, eval_num_envs, resolve_scenarios
@@ -36,9 +37,9 @@ from rlplat.scenarios import STRATEGIES
 
 
 class SeatVariant(TensorDictModuleBase):
-    """The actor's action (*B, seats, A), with a seat's correction scaled to 0 (the law) by
-    ``variant``; ``distance`` gives each seat's distance to the defender from its
-    observation."""
+    """The actor's action (*B, seats, A), each seat's correction scaled towards 0 (the law)
+    as ``variant`` says; ``position`` is the slice of a seat's observation that holds the
+    first defender's position relative to it (its distance decides the scale)."""
 
     def __init__(self, actor, variant: str, obs_key, action_key, position: slice) -> None:
         super().__init__()
@@ -104,8 +105,13 @@ def main() -> None:
                          num_envs=eval_num_envs(cfg, n))  # fmt: skip
     if getattr(env.action_fn, "corrects", None) is None:
         raise SystemExit(f"team_seats: action={cfg.action.name} corrects no law")
-    features = check_policy_fits(state, cfg, env, path, lone_in_team=True)
+    try:
+        features = check_policy_fits(state, cfg, env, path, lone_in_team=True)
+    except ConfigError as error:
+        raise SystemExit(f"team_seats: {error}") from None
     names = [f["name"] for f in env.obs_fn.features()]
+    if "(p_opponent0 - p_own).x" not in names:
+        raise SystemExit(f"team_seats: observation={cfg.observation.name} has no relative position")
     at = names.index("(p_opponent0 - p_own).x")
     actor = actor_from_state(state, env.drone_action_spec, "cpu", env.group, features)
     network = scenarios.split(args.split)["defender_strategy"][:, 0] == STRATEGIES.index("nn")
