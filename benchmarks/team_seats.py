@@ -44,6 +44,8 @@ class SeatVariant(TensorDictModuleBase):
     def __init__(self, actor, variant: str, obs_key, action_key, position: slice) -> None:
         super().__init__()
         self.actor, self.variant, self.position = actor, variant, position
+        # near:D1:D2, read once (check_variant has checked it)
+        self.gate = tuple(float(x) for x in variant.split(":")[1:]) if ":" in variant else None
         self.obs_key, self.action_key = obs_key, action_key
         self.in_keys, self.out_keys = [obs_key], [action_key]
 
@@ -61,7 +63,7 @@ class SeatVariant(TensorDictModuleBase):
         elif self.variant == "near-law":
             scale = (~nearest).to(distance.dtype)
         else:  # near:D1:D2
-            low, high = (float(x) for x in self.variant.split(":")[1:])
+            low, high = self.gate
             scale = ((high - distance) / (high - low)).clamp(0.0, 1.0)
         td.set(self.action_key, action * scale.unsqueeze(-1))
         return td
