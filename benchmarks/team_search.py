@@ -1,0 +1,245 @@
+"""Whether any team play captures what a policy missed: a search over the attackers' plays,
+flown against the split's own defenders (route flyers and the defender network alike).
+
+The capture ceiling (``rlplat.eval.ceiling``) bounds what any attacker can capture of a
+defender that flies its route; it says nothing of a defender that reacts. The defender
+network is deterministic, so the episode is a function of the attackers' commands alone:
+a play that captures it in a search captures it, and the captures a search finds are a
+lower bound on that defender's ceiling. This script searches, for each scenario a policy
+missed (the ``captured`` column of its ``episodes.csv``), over plays of the whole team:
+
+- each attacker flies, in each of ``--segments`` equal parts of the time limit, towards an
+  aim point at an offset from the (first) defender's current position, at a fraction of
+  its maximum speed (per axis, the plain velocity command of ``action=velocity``);
+  offsets and fractions per attacker and part are the play's parameters. A zero offset at
+  full speed is pure pursuit; offsets ahead of the defender lead it, offsets to the sides
+  flank it, a low fraction waits;
+- the cross-entropy method draws ``--samples`` plays per scenario, flies them all in one
+  batch on the embedded dynamics (the run's ``dynamics``, ``env`` and defender network),
+  and refits the draw to the best tenth, for ``--iterations`` rounds. A play's score is its
+  capture (the sooner the better) or else its least distance to the defender.
+
+Prints, per scenario, the defender's strategy, the team speed ratio, whether a play
+captured and when, and the least distance the best play reached; then the count per
+strategy. Same seed, same plays.
+
+    .venv/bin/python benchmarks/team_search.py RUN_DIR --scenarios data/scenarios/pursuit2v1 \\
+        --episodes RUN_DIR-team/eval/val-best/episodes.csv [--split val] [--samples 256] \\
+        [--iterations 10] [--segments 6] [--seed 0]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import logging
+import time
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+from tensordict.nn import TensorDictModuleBase
+
+from rlplat.eval.episodes import evaluate
+from rlplat.experiment.evaluation import load_run_config, plain_action
+from rlplat.experiment.factory import build_eval_env, resolve_scenarios
+from rlplat.io import atomic_write_text
+from rlplat.scenarios import STRATEGIES
+
+#: Offsets are drawn in a box around the defender, m (x, y, z); the first draw's spread.
+OFFSET_BOUND = torch.tensor([40.0, 40.0, 15.0])
+OFFSET_SPREAD = torch.tensor([15.0, 15.0, 6.0])
+GAIN = 2.0  # 1/s, the command towards the aim point per metre of distance to it
+ELITE = 0.1  # the fraction of each round's plays the next draw is fitted to
+
+
+class AimPlay(TensorDictModuleBase):
+    """Each attacker flies towards ``defender + offset`` at ``fraction`` of its maximum speed,
+    both per part of the episode: ``offset`` (N, S, k, 3) m, ``fraction`` (N, S, k)."""
+
+    def __init__(self, offset, fraction, max_speed, steps_per_part: int, k: int, key) -> None:
+        super().__init__()
+        self.offset, self.fraction, self.max_speed = offset, fraction, max_speed
+        self.steps_per_part, self.k, self.key = steps_per_part, k, key
+        self.in_keys, self.out_keys = ["positions"], [key]
+        self.step = 0
+
+    def forward(self, td):
+        part = min(self.step // self.steps_per_part, self.offset.shape[1] - 1)
+        self.step += 1
+        p = td.get("positions")  # (N, drones, 3): attackers first, then defenders
+        own, defender = p[:, : self.k], p[:, self.k : self.k + 1]
+        aim = defender + self.offset[:, part]
+        aim[..., 2] = aim[..., 2].clamp_min(1.0)  # never aim into the ground
+        command = GAIN * (aim - own) / self.max_speed.unsqueeze(-1)
+        scale = self.fraction[:, part].unsqueeze(-1)
+        action = command.clamp(-1.0, 1.0) * scale
+        return td.set(self.key, action if isinstance(self.key, tuple) else action[:, 0])
+
+
+def search_env(cfg, scenarios, split: str, rows: torch.Tensor, attackers: int):
+    """The env that flies split rows ``rows`` (one env each, in order) with plain velocity
+    commands; the attacker observes only the paper's relative state (the play reads the
+    drones' positions, and no observation changes what the drones or defenders do)."""
+    plain = OmegaConf.merge(plain_action(cfg), {"observation": None})
+    plain.observation = {"name": "relative_state", "position_scale": 10.0,
+                         "velocity_scale": 5.0}  # fmt: skip
+    picked = scenarios.split(split)[rows]
+    ids = [scenarios.ids[split][i] for i in rows.tolist()]
+    flown = dataclasses.replace(scenarios, splits={split: picked}, ids={split: ids})
+    return build_eval_env(plain, scenarios=flown, split=split, num_envs=len(rows),
+                          attackers=attackers)  # fmt: skip
+
+
+def misses(path: Path) -> tuple[list[str], list[dict[str, str]]]:
+    with path.open() as f:
+        rows = list(csv.DictReader(f))
+    if not rows or "captured" not in rows[0]:
+        raise SystemExit(f"team_search: {path} has no captured column")
+    return [r["scenario_id"] for r in rows if r["captured"] in ("0", "False")], rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run_dir", type=Path, help="a training run (its config flies the env)")
+    parser.add_argument("--scenarios", required=True, help="the scenario set")
+    parser.add_argument("--episodes", required=True, type=Path,
+                        help="a policy's episodes.csv of the split (its misses)")  # fmt: skip
+    parser.add_argument("--split", default="val", choices=("train", "val", "test"))
+    parser.add_argument("--samples", type=int, default=256)
+    parser.add_argument("--iterations", type=int, default=10)
+    parser.add_argument("--segments", type=int, default=6)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, default=None,
+                        help="write each scenario's best play here (JSON)")  # fmt: skip
+    parser.add_argument("--attackers", type=int, default=None,
+                        help="fly only the first this many attackers of each team")  # fmt: skip
+    args = parser.parse_args()
+    for name in ("samples", "iterations", "segments"):
+        if getattr(args, name) < 1:
+            raise SystemExit(f"team_search: --{name} must be >= 1, got {getattr(args, name)}")
+    if args.samples * ELITE < 2:
+        raise SystemExit(f"team_search: --samples must be >= {int(2 / ELITE)}, got {args.samples}")
+    logging.basicConfig(level=logging.WARNING)
+
+    cfg = load_run_config(args.run_dir)
+    scenarios = resolve_scenarios(cfg, args.scenarios)
+    missed, rows = misses(args.episodes)
+    ids = scenarios.ids[args.split]
+    unknown = [i for i in missed if i not in ids]
+    if unknown or len(rows) != len(ids):
+        raise SystemExit(f"team_search: {args.episodes} is not an evaluation of the {args.split} "
+                         f"split of {args.scenarios}")  # fmt: skip
+    info = {r["scenario_id"]: r for r in rows}
+    index = torch.tensor([ids.index(i) for i in missed])
+    s, n, k = len(missed), args.samples, scenarios.attackers
+    if args.attackers is not None:
+        if not 1 <= args.attackers <= k:
+            raise SystemExit(f"team_search: --attackers must be in 1..{k}, got {args.attackers}")
+        k = args.attackers
+    print(f"{s} scenarios {args.episodes} missed of {len(ids)} ({args.split}, {args.scenarios}); "
+          f"{k} attackers, {n} plays x {args.iterations} rounds, {args.segments} parts, "
+          f"seed {args.seed}\n")  # fmt: skip
+    if not s:
+        return
+
+    env = search_env(cfg, scenarios, args.split, index.repeat_interleave(n), k)
+    steps = round(float(cfg.env.time_limit) / float(cfg.env.control_period))
+    per_part = -(-steps // args.segments)
+    best_o, best_f, found, closest = search(env, args, s, k, per_part)
+    strategies = env.scenarios["defender_strategy"][::n, 0]
+    env.close()
+
+    # Each best play flown again, one env per scenario: a capture that needs the search's
+    # batch (its rounding) is not counted.
+    env = search_env(cfg, scenarios, args.split, index, k)
+    speed = env.scenarios["attacker_max_speed"][:, :k]
+    again = evaluate(env, AimPlay(best_o, best_f, speed, per_part, k, env.action_key))
+    env.close()
+    hit = again.captured & ~found.isnan()
+
+    ratio = "team_speed_ratio" if k > 1 else "speed_ratio"
+    print(f"| scenario | defender | {ratio.replace('_', ' ')} | route ceiling | a play captures "
+          "| at (s) | least distance (m) |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|")
+    for i, name in enumerate(missed):
+        r = info[name]
+        at = f"{again.time_to_capture[i]:.1f}" if hit[i] else ""
+        route = {"1": "yes", "0": "no"}.get(r.get("route_interceptable", ""), "")
+        print(f"| {name} | {r['defender_strategy']} | {float(r[ratio]):.2f} | {route} | "
+              f"{'yes' if hit[i] else 'no'} | {at} | {closest[i]:.2f} |")  # fmt: skip
+    lost = int((~found.isnan()).sum() - hit.sum())
+    print(f"\n(plays that captured in the search but not flown again alone: {lost})")
+    route = torch.tensor([info[i].get("route_interceptable") == "1" for i in missed])
+    for code, label in enumerate(STRATEGIES):
+        mine = strategies == code
+        if mine.any():
+            print(f"{label}: a play captures {int(hit[mine].sum())} of {int(mine.sum())} missed "
+                  f"({int(hit[mine & route].sum())} of the {int((mine & route).sum())} the route "
+                  f"ceiling calls interceptable, {int(hit[mine & ~route].sum())} of the other "
+                  f"{int((mine & ~route).sum())})")  # fmt: skip
+    if args.out is not None:
+        plays = {
+            name: {"captured_at_s": round(float(again.time_to_capture[i]), 2) if hit[i] else None,
+                   "least_distance_m": round(float(closest[i]), 3),
+                   "offset_m": best_o[i].tolist(), "fraction": best_f[i].tolist()}
+            for i, name in enumerate(missed)
+        }  # fmt: skip
+        doc = {"segments": args.segments, "gain": GAIN, "seed": args.seed, "plays": plays}
+        atomic_write_text(args.out, json.dumps(doc, indent=1) + "\n")
+
+
+def search(env, args, s: int, k: int, per_part: int):
+    """The cross-entropy search: ``args.samples`` plays per scenario, in the env's batch of
+    ``s`` scenarios x samples. Returns per scenario the best play's offsets (s, S, k, 3) and
+    fractions (s, S, k), the earliest capture time found (NaN if none) and the least distance."""
+    n = args.samples
+    speed = env.scenarios["attacker_max_speed"][:, :k]
+    generator = torch.Generator().manual_seed(args.seed)
+    dims = (s, args.segments, k)
+    mean_o, std_o = torch.zeros(*dims, 3), OFFSET_SPREAD.expand(*dims, 3).clone()
+    mean_f, std_f = torch.ones(*dims), torch.full(dims, 0.5)
+    best = torch.full((s,), -float("inf"))
+    best_o, best_f = torch.zeros(*dims, 3), torch.zeros(dims)
+    found = torch.full((s,), float("nan"))
+    closest = torch.full((s,), float("inf"))
+    elite = max(2, int(n * ELITE))
+    rows = torch.arange(s)
+    started = time.perf_counter()
+    for round_ in range(args.iterations):
+        noise = torch.randn(s, n, *dims[1:], 3, generator=generator)
+        offset = (mean_o.unsqueeze(1) + std_o.unsqueeze(1) * noise).clamp(
+            -OFFSET_BOUND, OFFSET_BOUND
+        )
+        noise = torch.randn(s, n, *dims[1:], generator=generator)
+        fraction = (mean_f.unsqueeze(1) + std_f.unsqueeze(1) * noise).clamp(0.0, 1.0)
+        if round_ == 0:  # the first play of each scenario is pure pursuit at full speed
+            offset[:, 0], fraction[:, 0] = 0.0, 1.0
+        play = AimPlay(offset.flatten(0, 1), fraction.flatten(0, 1), speed, per_part, k,
+                       env.action_key)  # fmt: skip
+        result = evaluate(env, play)
+        captured = result.captured.view(s, n)
+        when = result.time_to_capture.view(s, n)
+        score = torch.where(captured, 1000.0 - when, -result.min_distance.view(s, n))
+        found = torch.where(captured.any(1), torch.fmin(found, when.nan_to_num(1e9).amin(1)),
+                            found)  # fmt: skip
+        closest = closest.minimum(result.min_distance.view(s, n).amin(1))
+        top_score, top_play = score.max(1)
+        better = top_score > best
+        best_o[better] = offset[rows, top_play][better]
+        best_f[better] = fraction[rows, top_play][better]
+        best = best.maximum(top_score)
+        top = score.topk(elite, dim=1).indices  # (s, elite)
+        pick_o = offset.gather(1, top.view(s, elite, 1, 1, 1).expand(-1, -1, *dims[1:], 3))
+        pick_f = fraction.gather(1, top.view(s, elite, 1, 1).expand(-1, -1, *dims[1:]))
+        mean_o, std_o = pick_o.mean(1), pick_o.std(1).clamp_min(0.5)
+        mean_f, std_f = pick_f.mean(1), pick_f.std(1).clamp_min(0.05)
+        logging.warning("round %d: %d of %d captured, %.0f s", round_ + 1,
+                        int((~found.isnan()).sum()), s, time.perf_counter() - started)  # fmt: skip
+    return best_o, best_f, found, closest
+
+
+if __name__ == "__main__":
+    main()
