@@ -94,6 +94,8 @@ def search_env(cfg, scenarios, split: str, rows: torch.Tensor, attackers: int):
 
 
 def misses(path: Path) -> tuple[list[str], list[dict[str, str]]]:
+    if not path.is_file():
+        raise SystemExit(f"team_search: --episodes {path} is not a file")
     with path.open() as f:
         rows = list(csv.DictReader(f))
     if not rows or "captured" not in rows[0]:
@@ -171,7 +173,7 @@ def main() -> None:
         print(f"| {name} | {r['defender_strategy']} | {float(r[ratio]):.2f} | {route} | "
               f"{'yes' if hit[i] else 'no'} | {at} | {closest[i]:.2f} |")  # fmt: skip
     lost = int((~found.isnan()).sum() - hit.sum())
-    print(f"\n(plays that captured in the search but not flown again alone: {lost})")
+    print(f"\n(plays that captured in the search but not when flown again: {lost})")
     route = torch.tensor([info[i].get("route_interceptable") == "1" for i in missed])
     for code, label in enumerate(STRATEGIES):
         mine = strategies == code
