@@ -9,23 +9,25 @@ lower bound on that defender's ceiling. This script searches, for each scenario 
 missed (the ``captured`` column of its ``episodes.csv``), over plays of the whole team:
 
 - each attacker flies, in each of ``--segments`` equal parts of the time limit, towards an
-  aim point at an offset from the (first) defender's current position, at a fraction of
-  its maximum speed (per axis, the plain velocity command of ``action=velocity``);
-  offsets and fractions per attacker and part are the play's parameters. A zero offset at
-  full speed is pure pursuit; offsets ahead of the defender lead it, offsets to the sides
-  flank it, a low fraction waits;
+  aim point at a world-frame offset from the (first) defender's current position, at a
+  fraction of its maximum speed (per axis, the plain velocity command of
+  ``action=velocity``); offsets and fractions per attacker and part are the play's
+  parameters. A zero offset at full speed is pure pursuit; other offsets lead, flank or
+  wait for the defender, a low fraction holds back;
 - the cross-entropy method draws ``--samples`` plays per scenario, flies them all in one
   batch on the embedded dynamics (the run's ``dynamics``, ``env`` and defender network),
   and refits the draw to the best tenth, for ``--iterations`` rounds. A play's score is its
-  capture (the sooner the better) or else its least distance to the defender.
+  capture (the sooner the better) or else its least distance to the defender;
+- each scenario's best play is flown again, one env per scenario (another batch, so other
+  rounding): only a capture it repeats there counts.
 
-Prints, per scenario, the defender's strategy, the team speed ratio, whether a play
-captured and when, and the least distance the best play reached; then the count per
-strategy. Same seed, same plays.
+Prints, per scenario, the defender's strategy, the speed ratio (the team's), the route
+ceiling (the whole team's, also with ``--attackers 1``), whether the best play captured,
+when, and its least distance; then the count per strategy. Same seed, same plays.
 
     .venv/bin/python benchmarks/team_search.py RUN_DIR --scenarios data/scenarios/pursuit2v1 \\
-        --episodes RUN_DIR-team/eval/val-best/episodes.csv [--split val] [--samples 256] \\
-        [--iterations 10] [--segments 6] [--seed 0]
+        --episodes RUN_DIR/eval/val-best/episodes.csv [--split val] [--samples 256] \\
+        [--iterations 10] [--segments 6] [--seed 0] [--attackers 1] [--out plays.json]
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ import csv
 import dataclasses
 import json
 import logging
+import sys
 import time
 from pathlib import Path
 
@@ -42,6 +45,7 @@ import torch
 from omegaconf import OmegaConf
 from tensordict.nn import TensorDictModuleBase
 
+from rlplat.errors import ConfigError, ScenarioFileError
 from rlplat.eval.episodes import evaluate
 from rlplat.experiment.evaluation import load_run_config, plain_action
 from rlplat.experiment.factory import build_eval_env, resolve_scenarios
@@ -52,6 +56,7 @@ from rlplat.scenarios import STRATEGIES
 OFFSET_BOUND = torch.tensor([40.0, 40.0, 15.0])
 OFFSET_SPREAD = torch.tensor([15.0, 15.0, 6.0])
 GAIN = 2.0  # 1/s, the command towards the aim point per metre of distance to it
+LOWEST_AIM = 1.0  # m, aim points are raised to this altitude at least (not into the ground)
 ELITE = 0.1  # the fraction of each round's plays the next draw is fitted to
 
 
@@ -72,7 +77,7 @@ class AimPlay(TensorDictModuleBase):
         p = td.get("positions")  # (N, drones, 3): attackers first, then defenders
         own, defender = p[:, : self.k], p[:, self.k : self.k + 1]
         aim = defender + self.offset[:, part]
-        aim[..., 2] = aim[..., 2].clamp_min(1.0)  # never aim into the ground
+        aim[..., 2] = aim[..., 2].clamp_min(LOWEST_AIM)
         command = GAIN * (aim - own) / self.max_speed.unsqueeze(-1)
         scale = self.fraction[:, part].unsqueeze(-1)
         action = command.clamp(-1.0, 1.0) * scale
@@ -103,6 +108,61 @@ def misses(path: Path) -> tuple[list[str], list[dict[str, str]]]:
     return [r["scenario_id"] for r in rows if r["captured"] in ("0", "False")], rows
 
 
+def search(env, args, s: int, k: int, per_part: int):
+    """The cross-entropy search: ``args.samples`` plays per scenario, in the env's batch of
+    ``s`` scenarios x samples. Returns per scenario the best play's offsets (s, S, k, 3) and
+    fractions (s, S, k) and the earliest capture time found (NaN if none)."""
+    n = args.samples
+    speed = env.scenarios["attacker_max_speed"][:, :k]
+    generator = torch.Generator().manual_seed(args.seed)
+    dims = (s, args.segments, k)
+    mean_o, std_o = torch.zeros(*dims, 3), OFFSET_SPREAD.expand(*dims, 3).clone()
+    mean_f, std_f = torch.ones(*dims), torch.full(dims, 0.5)
+    best = torch.full((s,), -float("inf"))
+    best_o, best_f = torch.zeros(*dims, 3), torch.zeros(dims)
+    found = torch.full((s,), float("nan"))
+    elite = int(n * ELITE)  # >= 2 (main checks --samples)
+    rows = torch.arange(s)
+    started = time.perf_counter()
+    for round_ in range(args.iterations):
+        noise = torch.randn(s, n, *dims[1:], 3, generator=generator)
+        offset = (mean_o.unsqueeze(1) + std_o.unsqueeze(1) * noise).clamp(
+            -OFFSET_BOUND, OFFSET_BOUND
+        )
+        noise = torch.randn(s, n, *dims[1:], generator=generator)
+        fraction = (mean_f.unsqueeze(1) + std_f.unsqueeze(1) * noise).clamp(0.0, 1.0)
+        if round_ == 0:  # the first play of each scenario is pure pursuit at full speed
+            offset[:, 0], fraction[:, 0] = 0.0, 1.0
+        play = AimPlay(offset.flatten(0, 1), fraction.flatten(0, 1), speed, per_part, k,
+                       env.action_key)  # fmt: skip
+        result = evaluate(env, play)
+        captured = result.captured.view(s, n)
+        when = result.time_to_capture.view(s, n)
+        score = torch.where(captured, 1000.0 - when, -result.min_distance.view(s, n))
+        found = torch.where(captured.any(1), torch.fmin(found, when.nan_to_num(1e9).amin(1)),
+                            found)  # fmt: skip
+        top_score, top_play = score.max(1)
+        better = top_score > best
+        best_o[better] = offset[rows, top_play][better]
+        best_f[better] = fraction[rows, top_play][better]
+        best = best.maximum(top_score)
+        top = score.topk(elite, dim=1).indices  # (s, elite)
+        pick_o = offset.gather(1, top.view(s, elite, 1, 1, 1).expand(-1, -1, *dims[1:], 3))
+        pick_f = fraction.gather(1, top.view(s, elite, 1, 1).expand(-1, -1, *dims[1:]))
+        mean_o, std_o = pick_o.mean(1), pick_o.std(1).clamp_min(0.5)
+        mean_f, std_f = pick_f.mean(1), pick_f.std(1).clamp_min(0.05)
+        print(f"round {round_ + 1}: {int((~found.isnan()).sum())} of {s} captured, "
+              f"{time.perf_counter() - started:.0f} s", file=sys.stderr, flush=True)  # fmt: skip
+    return best_o, best_f, found
+
+
+def write_plays(args, plays: dict) -> None:
+    """Each scenario's best play to ``--out`` (if given), with what it needs to be flown again."""
+    if args.out is not None:
+        doc = {"segments": args.segments, "gain": GAIN, "seed": args.seed, "plays": plays}
+        atomic_write_text(args.out, json.dumps(doc, indent=1) + "\n")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dir", type=Path, help="a training run (its config flies the env)")
@@ -124,16 +184,24 @@ def main() -> None:
             raise SystemExit(f"team_search: --{name} must be >= 1, got {getattr(args, name)}")
     if args.samples * ELITE < 2:
         raise SystemExit(f"team_search: --samples must be >= {int(2 / ELITE)}, got {args.samples}")
+    if args.out is not None and not args.out.parent.is_dir():
+        raise SystemExit(f"team_search: --out {args.out}: no directory {args.out.parent}")
     logging.basicConfig(level=logging.WARNING)
 
-    cfg = load_run_config(args.run_dir)
-    scenarios = resolve_scenarios(cfg, args.scenarios)
+    try:
+        cfg = load_run_config(args.run_dir)
+        scenarios = resolve_scenarios(cfg, args.scenarios)
+    except (ConfigError, ScenarioFileError) as error:
+        raise SystemExit(f"team_search: {error}") from None
+    if cfg.dynamics.name == "airsim":
+        raise SystemExit("team_search: flies the embedded dynamics only, got dynamics=airsim")
     missed, rows = misses(args.episodes)
     ids = scenarios.ids[args.split]
     unknown = [i for i in missed if i not in ids]
     if unknown or len(rows) != len(ids):
         raise SystemExit(f"team_search: {args.episodes} is not an evaluation of the {args.split} "
-                         f"split of {args.scenarios}")  # fmt: skip
+                         f"split of {args.scenarios} ({len(rows)} rows, the split has "
+                         f"{len(ids)}: --split?)")  # fmt: skip
     info = {r["scenario_id"]: r for r in rows}
     index = torch.tensor([ids.index(i) for i in missed])
     s, n, k = len(missed), args.samples, scenarios.attackers
@@ -142,15 +210,17 @@ def main() -> None:
             raise SystemExit(f"team_search: --attackers must be in 1..{k}, got {args.attackers}")
         k = args.attackers
     print(f"{s} scenarios {args.episodes} missed of {len(ids)} ({args.split}, {args.scenarios}); "
-          f"{k} attackers, {n} plays x {args.iterations} rounds, {args.segments} parts, "
-          f"seed {args.seed}\n")  # fmt: skip
+          f"{k} attacker{'s' if k > 1 else ''}, {n} plays x {args.iterations} rounds, "
+          f"{args.segments} parts, seed {args.seed}\n")  # fmt: skip
     if not s:
+        write_plays(args, {})
         return
 
+    # One env per play, all in one wave (evaluate flies as many envs as the split has), so
+    # a play's step counter is the episode's.
     env = search_env(cfg, scenarios, args.split, index.repeat_interleave(n), k)
-    steps = round(float(cfg.env.time_limit) / float(cfg.env.control_period))
-    per_part = -(-steps // args.segments)
-    best_o, best_f, found, closest = search(env, args, s, k, per_part)
+    per_part = -(-env.max_steps // args.segments)
+    best_o, best_f, found = search(env, args, s, k, per_part)
     strategies = env.scenarios["defender_strategy"][::n, 0]
     env.close()
 
@@ -171,76 +241,24 @@ def main() -> None:
         at = f"{again.time_to_capture[i]:.1f}" if hit[i] else ""
         route = {"1": "yes", "0": "no"}.get(r.get("route_interceptable", ""), "")
         print(f"| {name} | {r['defender_strategy']} | {float(r[ratio]):.2f} | {route} | "
-              f"{'yes' if hit[i] else 'no'} | {at} | {closest[i]:.2f} |")  # fmt: skip
+              f"{'yes' if hit[i] else 'no'} | {at} | {again.min_distance[i]:.2f} |")  # fmt: skip
     lost = int((~found.isnan()).sum() - hit.sum())
     print(f"\n(plays that captured in the search but not when flown again: {lost})")
     route = torch.tensor([info[i].get("route_interceptable") == "1" for i in missed])
+    whose = "whole team's " if k < scenarios.attackers else ""
     for code, label in enumerate(STRATEGIES):
         mine = strategies == code
         if mine.any():
             print(f"{label}: a play captures {int(hit[mine].sum())} of {int(mine.sum())} missed "
-                  f"({int(hit[mine & route].sum())} of the {int((mine & route).sum())} the route "
-                  f"ceiling calls interceptable, {int(hit[mine & ~route].sum())} of the other "
-                  f"{int((mine & ~route).sum())})")  # fmt: skip
-    if args.out is not None:
-        plays = {
-            name: {"captured_at_s": round(float(again.time_to_capture[i]), 2) if hit[i] else None,
-                   "least_distance_m": round(float(closest[i]), 3),
-                   "offset_m": best_o[i].tolist(), "fraction": best_f[i].tolist()}
-            for i, name in enumerate(missed)
-        }  # fmt: skip
-        doc = {"segments": args.segments, "gain": GAIN, "seed": args.seed, "plays": plays}
-        atomic_write_text(args.out, json.dumps(doc, indent=1) + "\n")
-
-
-def search(env, args, s: int, k: int, per_part: int):
-    """The cross-entropy search: ``args.samples`` plays per scenario, in the env's batch of
-    ``s`` scenarios x samples. Returns per scenario the best play's offsets (s, S, k, 3) and
-    fractions (s, S, k), the earliest capture time found (NaN if none) and the least distance."""
-    n = args.samples
-    speed = env.scenarios["attacker_max_speed"][:, :k]
-    generator = torch.Generator().manual_seed(args.seed)
-    dims = (s, args.segments, k)
-    mean_o, std_o = torch.zeros(*dims, 3), OFFSET_SPREAD.expand(*dims, 3).clone()
-    mean_f, std_f = torch.ones(*dims), torch.full(dims, 0.5)
-    best = torch.full((s,), -float("inf"))
-    best_o, best_f = torch.zeros(*dims, 3), torch.zeros(dims)
-    found = torch.full((s,), float("nan"))
-    closest = torch.full((s,), float("inf"))
-    elite = max(2, int(n * ELITE))
-    rows = torch.arange(s)
-    started = time.perf_counter()
-    for round_ in range(args.iterations):
-        noise = torch.randn(s, n, *dims[1:], 3, generator=generator)
-        offset = (mean_o.unsqueeze(1) + std_o.unsqueeze(1) * noise).clamp(
-            -OFFSET_BOUND, OFFSET_BOUND
-        )
-        noise = torch.randn(s, n, *dims[1:], generator=generator)
-        fraction = (mean_f.unsqueeze(1) + std_f.unsqueeze(1) * noise).clamp(0.0, 1.0)
-        if round_ == 0:  # the first play of each scenario is pure pursuit at full speed
-            offset[:, 0], fraction[:, 0] = 0.0, 1.0
-        play = AimPlay(offset.flatten(0, 1), fraction.flatten(0, 1), speed, per_part, k,
-                       env.action_key)  # fmt: skip
-        result = evaluate(env, play)
-        captured = result.captured.view(s, n)
-        when = result.time_to_capture.view(s, n)
-        score = torch.where(captured, 1000.0 - when, -result.min_distance.view(s, n))
-        found = torch.where(captured.any(1), torch.fmin(found, when.nan_to_num(1e9).amin(1)),
-                            found)  # fmt: skip
-        closest = closest.minimum(result.min_distance.view(s, n).amin(1))
-        top_score, top_play = score.max(1)
-        better = top_score > best
-        best_o[better] = offset[rows, top_play][better]
-        best_f[better] = fraction[rows, top_play][better]
-        best = best.maximum(top_score)
-        top = score.topk(elite, dim=1).indices  # (s, elite)
-        pick_o = offset.gather(1, top.view(s, elite, 1, 1, 1).expand(-1, -1, *dims[1:], 3))
-        pick_f = fraction.gather(1, top.view(s, elite, 1, 1).expand(-1, -1, *dims[1:]))
-        mean_o, std_o = pick_o.mean(1), pick_o.std(1).clamp_min(0.5)
-        mean_f, std_f = pick_f.mean(1), pick_f.std(1).clamp_min(0.05)
-        logging.warning("round %d: %d of %d captured, %.0f s", round_ + 1,
-                        int((~found.isnan()).sum()), s, time.perf_counter() - started)  # fmt: skip
-    return best_o, best_f, found, closest
+                  f"({int(hit[mine & route].sum())} of the {int((mine & route).sum())} the {whose}"
+                  f"route ceiling calls interceptable, {int(hit[mine & ~route].sum())} of the "
+                  f"other {int((mine & ~route).sum())})")  # fmt: skip
+    write_plays(args, {
+        name: {"captured_at_s": round(float(again.time_to_capture[i]), 2) if hit[i] else None,
+               "least_distance_m": round(float(again.min_distance[i]), 3),
+               "offset_m": best_o[i].tolist(), "fraction": best_f[i].tolist()}
+        for i, name in enumerate(missed)
+    })  # fmt: skip
 
 
 if __name__ == "__main__":
