@@ -23,7 +23,11 @@ missed (the ``captured`` column of its ``episodes.csv``), over plays of the whol
 
 Prints, per scenario, the defender's strategy, the speed ratio (the team's), the route
 ceiling (the whole team's, also with ``--attackers 1``), whether the best play captured,
-when, and its least distance; then the count per strategy. Same seed, same plays.
+when, and its least distance; then the count per strategy and, per strategy and speed-ratio
+bin (``--bins``), the ceiling between the captures shown possible (the policy's and the
+plays') and the scenarios not provably out of reach (route flyers outside the capture
+ceiling), with the policy's capture rate as a fraction of its lower end. Same seed, same
+plays.
 
     .venv/bin/python benchmarks/team_search.py RUN_DIR --scenarios data/scenarios/pursuit2v1 \\
         --episodes RUN_DIR/eval/val-best/episodes.csv [--split val] [--samples 256] \\
@@ -41,12 +45,14 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 from omegaconf import OmegaConf
 from tensordict.nn import TensorDictModuleBase
 
 from rlplat.errors import ConfigError, ScenarioFileError
 from rlplat.eval.episodes import evaluate
+from rlplat.eval.metrics import speed_ratio_bin, speed_ratio_labels
 from rlplat.experiment.evaluation import load_run_config, plain_action
 from rlplat.experiment.factory import build_eval_env, resolve_scenarios
 from rlplat.io import atomic_write_text
@@ -100,12 +106,12 @@ def search_env(cfg, scenarios, split: str, rows: torch.Tensor, attackers: int):
 
 def misses(path: Path) -> tuple[list[str], list[dict[str, str]]]:
     if not path.is_file():
-        raise SystemExit(f"team_search: --episodes {path} is not a file")
+        raise SystemExit(f"team_search: {path} is not a file")
     with path.open() as f:
         rows = list(csv.DictReader(f))
     if not rows or "captured" not in rows[0]:
         raise SystemExit(f"team_search: {path} has no captured column")
-    return [r["scenario_id"] for r in rows if r["captured"] in ("0", "False")], rows
+    return [r["scenario_id"] for r in rows if not _captured(r)], rows
 
 
 def search(env, args, s: int, k: int, per_part: int):
@@ -156,6 +162,45 @@ def search(env, args, s: int, k: int, per_part: int):
     return best_o, best_f, found
 
 
+def ceiling_table(
+    rows: list[dict[str, str]],
+    played: set[str],
+    others: dict[str, set[str]],
+    ratio: str,
+    edges: list[float],
+) -> None:
+    """Per defender strategy and speed-ratio bin: the scenarios, those provably out of reach
+    (route flyers outside the capture ceiling), the ceiling between the captures shown
+    possible (the policy's, the plays' and ``others``': policy name -> the scenarios it
+    captured) and the scenarios not provably out of reach, and each policy's capture rate
+    with, in brackets, its fraction of the ceiling's lower end."""
+    bins = speed_ratio_bin(np.array([float(r[ratio]) for r in rows]), edges)
+    names = ["policy", *others]
+    print(f"\n| defender | {ratio.replace('_', ' ')} | scenarios | provably not | ceiling | "
+          + " | ".join(f"{n} (of the ceiling)" for n in names) + " |")  # fmt: skip
+    print("|---|---|---|---|---|" + "---|" * len(names))
+    for strategy in STRATEGIES:
+        for b, label in enumerate(speed_ratio_labels(edges)):
+            group = [r for r, g in zip(rows, bins, strict=True)
+                     if r["defender_strategy"] == strategy and g == b]  # fmt: skip
+            if not group:
+                continue
+            n = len(group)
+            out = sum(r.get("interceptable") == "0" for r in group)
+            caught = {"policy": {r["scenario_id"] for r in group if _captured(r)}}
+            ids = {r["scenario_id"] for r in group}
+            caught.update({name: ids & got for name, got in others.items()})
+            possible = len(set().union(*caught.values()) | (ids & played))
+            low, high = possible / n, (n - out) / n
+            bound = f"{low:.3f}" if low == high else f"{low:.3f}–{high:.3f}"
+            rates = [f"{len(c) / n:.3f} ({len(c) / max(possible, 1):.3f})" for c in caught.values()]
+            print(f"| {strategy} | {label} | {n} | {out} | {bound} | " + " | ".join(rates) + " |")
+
+
+def _captured(row: dict[str, str]) -> bool:
+    return row["captured"] in ("1", "True")
+
+
 def write_plays(args, plays: dict) -> None:
     """Each scenario's best play to ``--out`` (if given), with what it needs to be flown again."""
     if args.out is not None:
@@ -176,6 +221,10 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=None,
                         help="write each scenario's best play here (JSON)")  # fmt: skip
+    parser.add_argument("--others", type=Path, nargs="*", default=[],
+                        help="other policies' episodes.csv (the ceiling table)")  # fmt: skip
+    parser.add_argument("--bins", type=float, nargs="+", default=[0.6, 0.8],
+                        help="inner speed-ratio bin edges of the ceiling table")  # fmt: skip
     parser.add_argument("--attackers", type=int, default=None,
                         help="fly only the first this many attackers of each team")  # fmt: skip
     args = parser.parse_args()
@@ -184,6 +233,8 @@ def main() -> None:
             raise SystemExit(f"team_search: --{name} must be >= 1, got {getattr(args, name)}")
     if args.samples * ELITE < 2:
         raise SystemExit(f"team_search: --samples must be >= {int(2 / ELITE)}, got {args.samples}")
+    if sorted(args.bins) != args.bins or any(b <= 0 for b in args.bins):
+        raise SystemExit(f"team_search: --bins must be increasing and > 0, got {args.bins}")
     if args.out is not None and not args.out.parent.is_dir():
         raise SystemExit(f"team_search: --out {args.out}: no directory {args.out.parent}")
     logging.basicConfig(level=logging.WARNING)
@@ -203,6 +254,12 @@ def main() -> None:
                          f"split of {args.scenarios} ({len(rows)} rows, the split has "
                          f"{len(ids)}: --split?)")  # fmt: skip
     info = {r["scenario_id"]: r for r in rows}
+    others = {}
+    for path in args.others:  # each named by its evaluation's directory (test-pure_pursuit)
+        other_missed, other_rows = misses(path)
+        if sorted(r["scenario_id"] for r in other_rows) != sorted(info):
+            raise SystemExit(f"team_search: --others {path} flew other scenarios than --episodes")
+        others[path.parent.name] = {r["scenario_id"] for r in other_rows} - set(other_missed)
     index = torch.tensor([ids.index(i) for i in missed])
     s, n, k = len(missed), args.samples, scenarios.attackers
     if args.attackers is not None:
@@ -253,6 +310,11 @@ def main() -> None:
                   f"({int(hit[mine & route].sum())} of the {int((mine & route).sum())} the {whose}"
                   f"route ceiling calls interceptable, {int(hit[mine & ~route].sum())} of the "
                   f"other {int((mine & ~route).sum())})")  # fmt: skip
+    if k == scenarios.attackers:  # a lone attacker's plays say nothing of the team's ceiling
+        played = {name for i, name in enumerate(missed) if hit[i]}
+        ceiling_table(rows, played, others, ratio, args.bins)
+    else:
+        print("\n(no ceiling table: the plays flew fewer attackers than the scenarios hold)")
     write_plays(args, {
         name: {"captured_at_s": round(float(again.time_to_capture[i]), 2) if hit[i] else None,
                "least_distance_m": round(float(again.min_distance[i]), 3),
