@@ -24,14 +24,15 @@ missed (the ``captured`` column of its ``episodes.csv``), over plays of the whol
 Prints, per scenario, the defender's strategy, the speed ratio (the team's), the route
 ceiling (the whole team's, also with ``--attackers 1``), whether the best play captured,
 when, and its least distance; then the count per strategy and, per strategy and speed-ratio
-bin (``--bins``), the ceiling between the captures shown possible (the policy's and the
-plays') and the scenarios not provably out of reach (route flyers outside the capture
-ceiling), with the policy's capture rate as a fraction of its lower end. Same seed, same
-plays.
+bin (``--bins``), the ceiling between the captures shown possible (the policy's, the plays'
+and those of the ``--others`` evaluations, e.g. the baselines') and the scenarios not
+provably out of reach (route flyers outside the capture ceiling), with each policy's capture
+rate as a fraction of its lower end. Same seed, same plays.
 
     .venv/bin/python benchmarks/team_search.py RUN_DIR --scenarios data/scenarios/pursuit2v1 \\
         --episodes RUN_DIR/eval/val-best/episodes.csv [--split val] [--samples 256] \\
-        [--iterations 10] [--segments 6] [--seed 0] [--attackers 1] [--out plays.json]
+        [--iterations 10] [--segments 6] [--seed 0] [--attackers 1] [--out plays.json] \\
+        [--others OTHER/episodes.csv ...] [--bins 0.6 0.8]
 """
 
 from __future__ import annotations
@@ -259,7 +260,8 @@ def main() -> None:
         other_missed, other_rows = misses(path)
         if sorted(r["scenario_id"] for r in other_rows) != sorted(info):
             raise SystemExit(f"team_search: --others {path} flew other scenarios than --episodes")
-        others[path.parent.name] = {r["scenario_id"] for r in other_rows} - set(other_missed)
+        name = path.parent.name if path.parent.name not in ("policy", *others) else str(path)
+        others[name] = {r["scenario_id"] for r in other_rows} - set(other_missed)
     index = torch.tensor([ids.index(i) for i in missed])
     s, n, k = len(missed), args.samples, scenarios.attackers
     if args.attackers is not None:
