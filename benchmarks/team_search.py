@@ -54,6 +54,7 @@ from tensordict.nn import TensorDictModuleBase
 from rlplat.errors import ConfigError, ScenarioFileError
 from rlplat.eval.episodes import evaluate
 from rlplat.eval.metrics import speed_ratio_bin, speed_ratio_labels
+from rlplat.eval.pool import _captured
 from rlplat.experiment.evaluation import load_run_config, plain_action
 from rlplat.experiment.factory import build_eval_env, resolve_scenarios
 from rlplat.io import atomic_write_text
@@ -96,8 +97,7 @@ def search_env(cfg, scenarios, split: str, rows: torch.Tensor, attackers: int):
     commands; the attacker observes only the paper's relative state (the play reads the
     drones' positions, and no observation changes what the drones or defenders do)."""
     plain = OmegaConf.merge(plain_action(cfg), {"observation": None})
-    plain.observation = {"name": "relative_state", "position_scale": 10.0,
-                         "velocity_scale": 5.0}  # fmt: skip
+    plain.observation = {"name": "relative_state"}
     picked = scenarios.split(split)[rows]
     ids = [scenarios.ids[split][i] for i in rows.tolist()]
     flown = dataclasses.replace(scenarios, splits={split: picked}, ids={split: ids})
@@ -118,7 +118,8 @@ def misses(path: Path) -> tuple[list[str], list[dict[str, str]]]:
 def search(env, args, s: int, k: int, per_part: int):
     """The cross-entropy search: ``args.samples`` plays per scenario, in the env's batch of
     ``s`` scenarios x samples. Returns per scenario the best play's offsets (s, S, k, 3) and
-    fractions (s, S, k) and the earliest capture time found (NaN if none)."""
+    fractions (s, S, k) and the earliest capture time found (NaN if none: a capture scores
+    1000 - its time, a miss minus its least distance)."""
     n = args.samples
     speed = env.scenarios["attacker_max_speed"][:, :k]
     generator = torch.Generator().manual_seed(args.seed)
@@ -127,7 +128,6 @@ def search(env, args, s: int, k: int, per_part: int):
     mean_f, std_f = torch.ones(*dims), torch.full(dims, 0.5)
     best = torch.full((s,), -float("inf"))
     best_o, best_f = torch.zeros(*dims, 3), torch.zeros(dims)
-    found = torch.full((s,), float("nan"))
     elite = int(n * ELITE)  # >= 2 (main checks --samples)
     rows = torch.arange(s)
     started = time.perf_counter()
@@ -146,8 +146,6 @@ def search(env, args, s: int, k: int, per_part: int):
         captured = result.captured.view(s, n)
         when = result.time_to_capture.view(s, n)
         score = torch.where(captured, 1000.0 - when, -result.min_distance.view(s, n))
-        found = torch.where(captured.any(1), torch.fmin(found, when.nan_to_num(1e9).amin(1)),
-                            found)  # fmt: skip
         top_score, top_play = score.max(1)
         better = top_score > best
         best_o[better] = offset[rows, top_play][better]
@@ -158,9 +156,9 @@ def search(env, args, s: int, k: int, per_part: int):
         pick_f = fraction.gather(1, top.view(s, elite, 1, 1).expand(-1, -1, *dims[1:]))
         mean_o, std_o = pick_o.mean(1), pick_o.std(1).clamp_min(0.5)
         mean_f, std_f = pick_f.mean(1), pick_f.std(1).clamp_min(0.05)
-        print(f"round {round_ + 1}: {int((~found.isnan()).sum())} of {s} captured, "
+        print(f"round {round_ + 1}: {int((best > 0).sum())} of {s} captured, "
               f"{time.perf_counter() - started:.0f} s", file=sys.stderr, flush=True)  # fmt: skip
-    return best_o, best_f, found
+    return best_o, best_f, torch.where(best > 0, 1000.0 - best, float("nan"))
 
 
 def ceiling_table(
@@ -196,10 +194,6 @@ def ceiling_table(
             bound = f"{low:.3f}" if low == high else f"{low:.3f}–{high:.3f}"
             rates = [f"{len(c) / n:.3f} ({len(c) / max(possible, 1):.3f})" for c in caught.values()]
             print(f"| {strategy} | {label} | {n} | {out} | {bound} | " + " | ".join(rates) + " |")
-
-
-def _captured(row: dict[str, str]) -> bool:
-    return row["captured"] in ("1", "True")
 
 
 def write_plays(args, plays: dict) -> None:
