@@ -4,6 +4,7 @@ from tensordict import TensorDict
 
 from rlplat.agents.policies import make_scripted_policy
 from rlplat.agents.transitions import n_step_transitions, shape_rewards
+from rlplat.errors import ConfigError
 from rlplat.eval.episodes import evaluate
 
 
@@ -229,6 +230,62 @@ def test_action_margin_reaches_full_scale_inside_the_bounds():
     q_edge = critic(td.clone())["state_action_value"]
     q_past = critic(td.set("action", torch.full((8, 3), 1.15)))["state_action_value"]
     assert torch.equal(q_edge, q_past)
+
+
+def test_correlated_noise_keeps_each_draw_standard_and_correlates_successive_ones():
+    from rlplat.agents.sac import CorrelatedNoise
+
+    like = torch.zeros(20000)
+    torch.manual_seed(0)
+    white = CorrelatedNoise(0.0)
+    independent = [white(like) for _ in range(3)]
+    torch.manual_seed(0)
+    assert all(torch.equal(x, torch.randn(20000)) for x in independent)  # rho 0: torch.randn
+    torch.manual_seed(0)
+    noise = CorrelatedNoise(0.9)
+    draws = torch.stack([noise(like) for _ in range(40)])
+    # Every draw N(0, 1) (20,000 samples: the std within 0.03), successive ones correlated
+    # by 0.9 and ten steps apart by 0.9^10 = 0.35 (each estimate within 0.02).
+    assert draws.mean(dim=1).abs().max() < 0.03
+    assert (draws.std(dim=1) - 1.0).abs().max() < 0.03
+    assert abs(torch.corrcoef(draws[[20, 21]])[0, 1] - 0.9) < 0.02
+    assert abs(torch.corrcoef(draws[[20, 30]])[0, 1] - 0.9**10) < 0.02
+    torch.manual_seed(1)
+    restarted = noise(torch.zeros(5))  # another batch of envs: a new process
+    torch.manual_seed(1)
+    assert torch.equal(restarted, torch.randn(5))
+    with pytest.raises(ConfigError, match=r"algo.noise_correlation: must be in \[0, 1\), got 1.0"):
+        CorrelatedNoise(1.0)
+
+
+def test_correlated_exploration_samples_the_actors_distribution_with_memory():
+    from torchrl.data import Bounded
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from rlplat.agents.sac import CorrelatedExploration, NetSpec, make_actor
+
+    spec = Bounded(-1.0, 1.0, shape=(3,))
+    net = NetSpec(3, 3, (16,), (16,), "relu", (1.0, 1.0, 1.0), action_margin=0.2)
+    torch.manual_seed(0)
+    actor = make_actor(net, spec)
+    obs = TensorDict(observation=torch.randn(1, 3).expand(20000, 3), batch_size=[20000])
+    explore = CorrelatedExploration(actor, net, spec, 0.95)
+    steps = [explore(obs.clone())["action"] for _ in range(30)]
+    with set_exploration_type(ExplorationType.RANDOM):
+        own = [actor(obs.clone())["action"] for _ in range(2)]
+    # One step of the correlated sampler is the actor's own sample in distribution (20,000
+    # draws of one observation: means and stds within 0.02), inside the bounds ...
+    for a, b in ((steps[-1], own[0]), (steps[-1], own[1])):
+        assert (a.mean(0) - b.mean(0)).abs().max() < 0.02
+        assert (a.std(0) - b.std(0)).abs().max() < 0.02
+    assert all(s.abs().max() <= 1.0 for s in steps)
+
+    # ... and successive steps remember each other, where the actor's samples do not.
+    def corr(a, b):
+        return torch.corrcoef(torch.stack([a[:, 0], b[:, 0]]))[0, 1]
+
+    assert corr(steps[-2], steps[-1]) > 0.9
+    assert abs(corr(own[0], own[1])) < 0.03
 
 
 def test_fused_soft_update_is_torchrls_soft_update():

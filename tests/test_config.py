@@ -396,6 +396,7 @@ SAC_PAPER_CHANGES = {
 #: What it keeps of algo/sac.yaml (Stable-Baselines3's values too).
 SAC_PAPER_KEPT = {
     "init_noise": 0.3,
+    "noise_correlation": 0.0,
     "buffer_size": 1000000,
     "gamma": 0.99,
     "potential_key": "distance",

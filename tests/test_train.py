@@ -249,6 +249,26 @@ def test_same_seed_same_training(scenarios, tmp_path, tiny_run):
     assert a["test_mean_return"] == b["test_mean_return"]
 
 
+def test_correlated_noise_trains_reproducibly_and_explores_otherwise(scenarios, tmp_path, tiny_run):
+    runs = {
+        name: tiny_run(scenarios, tmp_path / name, "seed=3", *extra)
+        for name, extra in (
+            ("a", ["algo.noise_correlation=0.9"]),
+            ("b", ["algo.noise_correlation=0.9"]),
+            ("white", []),
+        )
+    }
+    # The learner's whole state: its actor is held through the bundle's warm-up updates.
+    agents = {
+        n: load_checkpoint(tmp_path / n / "checkpoints" / "last.pt")["agent"]["loss"] for n in runs
+    }
+    assert agents["a"].keys() == agents["white"].keys()
+    assert all(torch.equal(agents["a"][k], agents["b"][k]) for k in agents["a"])
+    assert runs["a"]["test_mean_return"] == runs["b"]["test_mean_return"]
+    # Other noise, other transitions, other critics.
+    assert not all(torch.equal(agents["a"][k], agents["white"][k]) for k in agents["a"])
+
+
 @pytest.mark.parametrize(
     ("override", "message"),
     [
@@ -266,6 +286,10 @@ def test_same_seed_same_training(scenarios, tmp_path, tiny_run):
             "attacker; valid: random, pure_pursuit, proportional_navigation",
         ),
         ("algo.init_noise=-1", "algo.init_noise: must be a finite number >= 0, got -1"),
+        (
+            "algo.noise_correlation=1",
+            r"algo.noise_correlation: must be a finite number in \[0, 1\), got 1$",
+        ),
         ("train.threads=0", "train.threads: must be an integer >= 1 or null, got 0"),
         (
             "algo.action_margin=2",

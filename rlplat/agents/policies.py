@@ -30,6 +30,7 @@ from torch import Tensor, nn
 from torchrl.data import Bounded
 
 from rlplat.agents.checkpoint import actor_from_state, load_checkpoint, saved_interface
+from rlplat.agents.sac import CorrelatedNoise
 from rlplat.envs.components import OBSERVATIONS, DroneView
 from rlplat.envs.kinematics import (
     SetpointFlight,
@@ -420,19 +421,27 @@ class NoisyPolicy:
 
     Fills a replay buffer with a classical controller's experience, widened by noise so that
     the critic sees actions around the controller's too. Draws from torch's global generator
-    (seeded by the run).
+    (seeded by the run); with ``correlation`` > 0 each step's draw keeps that correlation with
+    the last (:class:`~rlplat.agents.sac.CorrelatedNoise`), so that the noise moves the drone
+    instead of averaging out.
     """
 
-    def __init__(self, policy, noise_std: float, key: str | tuple[str, ...] = "action") -> None:
+    def __init__(
+        self,
+        policy,
+        noise_std: float,
+        key: str | tuple[str, ...] = "action",
+        correlation: float = 0.0,
+    ) -> None:
         self.policy = policy
         self.noise_std = float(noise_std)
         self.key = key  # the env's action key
+        self.noise = CorrelatedNoise(correlation)
 
     def __call__(self, td: TensorDictBase) -> TensorDictBase:
         td = self.policy(td)
         action = td[self.key]
-        noise = torch.randn(action.shape, device=action.device, dtype=action.dtype)
-        return td.set(self.key, (action + self.noise_std * noise).clamp(-1.0, 1.0))
+        return td.set(self.key, (action + self.noise_std * self.noise(action)).clamp(-1.0, 1.0))
 
 
 # Trained networks flown as controllers ----------------------------------------------------

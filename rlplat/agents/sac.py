@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import NormalParamExtractor, TensorDictModule
+from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictModuleBase
 from torch import nn
 from torchrl.data import RandomSampler, ReplayBuffer, TensorSpec, TensorStorage
 from torchrl.envs.utils import ExplorationType
@@ -136,6 +137,67 @@ def make_actor(
     )
 
 
+class CorrelatedNoise:
+    """Standard normal draws correlated in time: an AR(1) process.
+
+    Each call returns ``rho * last + sqrt(1 - rho^2) * fresh`` (``fresh`` from torch's global
+    generator), so every draw is N(0, 1) as before and successive draws keep a correlation of
+    ``rho`` per step (``1 / (1 - rho)`` steps of memory). ``rho = 0`` returns the fresh draw
+    itself: independent noise, the same numbers as ``torch.randn``. A call with another shape
+    (a new batch of envs) starts a new process.
+    """
+
+    def __init__(self, rho: float) -> None:
+        if not 0.0 <= rho < 1.0:
+            raise ConfigError(f"algo.noise_correlation: must be in [0, 1), got {rho}")
+        self.rho = float(rho)
+        self.last: torch.Tensor | None = None
+
+    def __call__(self, like: torch.Tensor) -> torch.Tensor:
+        fresh = torch.randn(like.shape, device=like.device, dtype=like.dtype)
+        if self.rho == 0.0 or self.last is None or self.last.shape != fresh.shape:
+            self.last = fresh
+        else:
+            self.last = self.rho * self.last + math.sqrt(1.0 - self.rho**2) * fresh
+        return self.last
+
+
+class CorrelatedExploration(TensorDictModuleBase):
+    """An actor of :func:`make_actor` sampled with noise correlated in time.
+
+    SAC samples its squashed Gaussian afresh at every step; at 10 steps per second a drone's
+    velocity lag averages such noise away, and a play that holds an offset for seconds is
+    never tried. This flies ``tanh(loc + scale * e_t)`` mapped onto the actor's bounds (and
+    clamped as the actor clamps), with ``e_t`` from :class:`CorrelatedNoise`: per step the same
+    distribution as the actor's own sample, correlated from one step to the next. Only what is
+    collected changes; the loss still samples the actor itself.
+    """
+
+    def __init__(self, actor, net: NetSpec, action_spec: TensorSpec, rho: float) -> None:
+        super().__init__()
+        self.actor = actor
+        self.params_module = actor[0]  # observation -> loc, scale
+        self.in_keys = list(self.params_module.in_keys)
+        self.out_keys = list(actor.out_keys)
+        self.loc_key, self.scale_key = self.params_module.out_keys
+        self.action_key = actor[-1].out_keys[0]  # the distribution module writes the action
+        self.noise = CorrelatedNoise(rho)
+        low, high = action_spec.space.low, action_spec.space.high
+        pad = net.action_margin * (high - low) / 2
+        self.register_buffer("low", low)
+        self.register_buffer("high", high)
+        self.register_buffer("centre", (high + low) / 2)
+        self.register_buffer("reach", (high - low) / 2 + pad)
+
+    def forward(self, td: TensorDictBase) -> TensorDictBase:
+        td = self.params_module(td)
+        loc, scale = td.get(self.loc_key), td.get(self.scale_key)
+        squashed = torch.tanh(loc + scale * self.noise(loc))
+        action = self.centre + self.reach * squashed
+        action = torch.maximum(torch.minimum(action, self.high), self.low)  # as the actor clamps
+        return td.set(self.action_key, action)
+
+
 def actor_body(actor) -> nn.Module:
     """The parameterised part of an actor of :func:`make_actor` (observation -> loc, scale)."""
     return actor.module[0].module
@@ -219,6 +281,9 @@ class SACAgent:
         actor_average: with a rate r > 0, an exponential moving average of the actor's
             weights, ``avg <- (1 - r) avg + r actor`` after each :meth:`average_actor`: the
             policy the run validates, checkpoints and flies (``flown_actor``); 0 = the actor.
+        noise_correlation: the correlation per step of the noise that ``collect_policy``
+            samples the actor with (:class:`CorrelatedExploration`); 0 = the actor itself,
+            SAC's independent draws.
         group: the env's group key of a team of learners (None for a lone learner). The loss
             trains on one drone's transitions at a time (flat keys, see
             :func:`rlplat.agents.transitions.agent_rows`); ``policy`` flies the whole team with
@@ -242,6 +307,7 @@ class SACAgent:
         anchor_weight: float = 0.0,
         actor_average: float = 0.0,
         compile: bool = False,
+        noise_correlation: float = 0.0,
         group: str | None = None,
         device: torch.device | str = "cpu",
     ) -> None:
@@ -251,6 +317,12 @@ class SACAgent:
             self.actor
             if group is None
             else make_actor(net, action_spec, device, group=group, body=actor_body(self.actor))
+        )
+        # What the collector flies: the team policy, sampled with correlated noise if asked.
+        self.collect_policy = (
+            self.policy
+            if noise_correlation == 0.0
+            else CorrelatedExploration(self.policy, net, action_spec, noise_correlation)
         )
         # The weight average: a second actor (and its team policy) that the actor's weights
         # are folded into; without one, the actor is what is flown.

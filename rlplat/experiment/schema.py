@@ -162,6 +162,7 @@ TRAIN_RULES: dict[str, Rule] = {
     "algo.init_random_frames": Num(integer=True, ge=0),
     "algo.init_policy": Text(),  # one of INIT_POLICIES for drone.learner, checked below
     "algo.init_noise": NON_NEGATIVE,
+    "algo.noise_correlation": Num(ge=0, lt=1),
     "algo.utd_ratio": POSITIVE,
     "algo.batch_size": COUNT,
     "algo.buffer_size": COUNT,
@@ -558,6 +559,7 @@ ADDED_KEYS: dict[str, Any] = {
     "action.accel_reach": 0.0,
     "action.correction_reach": 0.0,
     "algo.actor_average": 0.0,
+    "algo.noise_correlation": 0.0,
 }
 
 

@@ -166,7 +166,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     # otherwise the collector starts with random actions, or with the policy on a resume.
     scripted_start = algo.init_policy != "random" and algo.init_random_frames > 0
     random_frames = 0 if resume_state is not None or scripted_start else algo.init_random_frames
-    collector = make_collector(train_env, agent.policy, algo, random_frames, device)
+    collector = make_collector(train_env, agent.collect_policy, algo, random_frames, device)
 
     # Scripted start
     start = time.perf_counter() - state.wall_time_s
@@ -400,6 +400,7 @@ def make_agent(net: NetSpec, env: PursuitEnv, algo: DictConfig, device) -> SACAg
         anchor_weight=algo.anchor_weight,
         actor_average=algo.actor_average,
         compile=algo.compile,
+        noise_correlation=algo.noise_correlation,
         group=env.group,
         device=device,
     )
@@ -477,9 +478,10 @@ def replay(batch, group: str | None, algo: DictConfig):
 
 def prefill(buffer, train_env, env: PursuitEnv, algo: DictConfig) -> int:
     """Fill the replay buffer with ``algo.init_random_frames`` frames of the scripted
-    ``algo.init_policy`` plus Gaussian noise (``algo.init_noise``); returns the frames."""
+    ``algo.init_policy`` plus Gaussian noise (``algo.init_noise``, correlated in time by
+    ``algo.noise_correlation``); returns the frames."""
     policy = NoisyPolicy(make_scripted_policy(algo.init_policy, env), algo.init_noise,
-                         env.action_key)  # fmt: skip
+                         env.action_key, algo.noise_correlation)  # fmt: skip
     steps = algo.frames_per_batch // algo.num_envs
     frames, td = 0, train_env.reset()
     while frames < algo.init_random_frames:
