@@ -197,8 +197,9 @@ def test_shaped_strict_makes_losing_sight_the_worst_in_flight_step():
     assert strict.terms.ground_contact <= strict.terms.out_of_view / (1.0 - 0.99)
 
 
-def test_attacker_v6_pays_a_late_capture_and_never_a_crash_under_its_discount():
-    cfg = compose_config("train", ["drone=attacker_v6"])
+@pytest.mark.parametrize("drone", ["attacker_v6", "attacker_v13"])
+def test_a_late_capture_pays_and_a_crash_never_does_under_the_bundles_discount(drone):
+    cfg = compose_config("train", [f"drone={drone}"])
     eq3 = OmegaConf.load(CONF / "reward" / "shaped.yaml").terms
     terms, gamma = cfg.reward.terms, cfg.algo.gamma
     # In flight it pays eq. 3's terms; only the capture and the crash are scaled.
