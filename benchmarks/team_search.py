@@ -32,7 +32,13 @@ rate as a fraction of its lower end. Same seed, same plays.
     .venv/bin/python benchmarks/team_search.py RUN_DIR --scenarios data/scenarios/pursuit2v1 \\
         --episodes RUN_DIR/eval/val-best/episodes.csv [--split val] [--samples 256] \\
         [--iterations 10] [--segments 6] [--seed 0] [--attackers 1] [--out plays.json] \\
-        [--others OTHER/episodes.csv ...] [--bins 0.6 0.8]
+        [--others OTHER/episodes.csv ...] [--bins 0.6 0.8] [--strategy nn] [--through-action]
+
+``--through-action`` flies each play through the run's own action instead (the correction
+that makes its law's action the play's command, :class:`rlplat.agents.plays.AimPlay`): behind
+a gate that is shut the law flies, so these are the plays the run's learner can fly, and the
+``--out`` file is what ``algo.demonstrations`` stores in the replay buffer. It is slower (the
+run's observation and law are computed for every play).
 """
 
 from __future__ import annotations
@@ -49,8 +55,8 @@ from pathlib import Path
 import numpy as np
 import torch
 from omegaconf import OmegaConf
-from tensordict.nn import TensorDictModuleBase
 
+from rlplat.agents.plays import GAIN, AimPlay
 from rlplat.errors import ConfigError, ScenarioFileError
 from rlplat.eval.episodes import evaluate
 from rlplat.eval.metrics import speed_ratio_bin, speed_ratio_labels
@@ -63,46 +69,29 @@ from rlplat.scenarios import STRATEGIES
 #: Offsets are drawn in a box around the defender, m (x, y, z); the first draw's spread.
 OFFSET_BOUND = torch.tensor([40.0, 40.0, 15.0])
 OFFSET_SPREAD = torch.tensor([15.0, 15.0, 6.0])
-GAIN = 2.0  # 1/s, the command towards the aim point per metre of distance to it
-LOWEST_AIM = 1.0  # m, aim points are raised to this altitude at least (not into the ground)
 ELITE = 0.1  # the fraction of each round's plays the next draw is fitted to
 
 
-class AimPlay(TensorDictModuleBase):
-    """Each attacker flies towards ``defender + offset`` at ``fraction`` of its maximum speed,
-    both per part of the episode: ``offset`` (N, S, k, 3) m, ``fraction`` (N, S, k)."""
-
-    def __init__(self, offset, fraction, max_speed, steps_per_part: int, k: int, key) -> None:
-        super().__init__()
-        self.offset, self.fraction, self.max_speed = offset, fraction, max_speed
-        self.steps_per_part, self.k, self.key = steps_per_part, k, key
-        self.in_keys, self.out_keys = ["positions"], [key]
-        self.step = 0
-
-    def forward(self, td):
-        part = min(self.step // self.steps_per_part, self.offset.shape[1] - 1)
-        self.step += 1
-        p = td.get("positions")  # (N, drones, 3): attackers first, then defenders
-        own, defender = p[:, : self.k], p[:, self.k : self.k + 1]
-        aim = defender + self.offset[:, part]
-        aim[..., 2] = aim[..., 2].clamp_min(LOWEST_AIM)
-        command = GAIN * (aim - own) / self.max_speed.unsqueeze(-1)
-        scale = self.fraction[:, part].unsqueeze(-1)
-        action = command.clamp(-1.0, 1.0) * scale
-        return td.set(self.key, action if isinstance(self.key, tuple) else action[:, 0])
-
-
-def search_env(cfg, scenarios, split: str, rows: torch.Tensor, attackers: int):
-    """The env that flies split rows ``rows`` (one env each, in order) with plain velocity
-    commands; the attacker observes only the paper's relative state (the play reads the
-    drones' positions, and no observation changes what the drones or defenders do)."""
-    plain = OmegaConf.merge(plain_action(cfg), {"observation": None})
-    plain.observation = {"name": "relative_state"}
+def search_env(cfg, scenarios, split: str, rows: torch.Tensor, attackers: int, through: bool):
+    """The env that flies split rows ``rows`` (one env each, in order): with plain velocity
+    commands, the attacker observing only the paper's relative state (the play reads the
+    drones' positions, and no observation changes what the drones or defenders do); with
+    ``through``, the run's own observation and action (the play flown as a correction)."""
+    flown_cfg = cfg
+    if not through:
+        flown_cfg = OmegaConf.merge(plain_action(cfg), {"observation": None})
+        flown_cfg.observation = {"name": "relative_state"}
     picked = scenarios.split(split)[rows]
     ids = [scenarios.ids[split][i] for i in rows.tolist()]
     flown = dataclasses.replace(scenarios, splits={split: picked}, ids={split: ids})
-    return build_eval_env(plain, scenarios=flown, split=split, num_envs=len(rows),
+    return build_eval_env(flown_cfg, scenarios=flown, split=split, num_envs=len(rows),
                           attackers=attackers)  # fmt: skip
+
+
+def play(env, offset, fraction, speed, per_part: int, k: int, through: bool) -> AimPlay:
+    """The plays flown by ``env``: plain commands, or ``through`` its guided action."""
+    return AimPlay(offset, fraction, speed, per_part, k, env.action_key,
+                   env=env if through else None)  # fmt: skip
 
 
 def misses(path: Path) -> tuple[list[str], list[dict[str, str]]]:
@@ -140,9 +129,9 @@ def search(env, args, s: int, k: int, per_part: int):
         fraction = (mean_f.unsqueeze(1) + std_f.unsqueeze(1) * noise).clamp(0.0, 1.0)
         if round_ == 0:  # the first play of each scenario is pure pursuit at full speed
             offset[:, 0], fraction[:, 0] = 0.0, 1.0
-        play = AimPlay(offset.flatten(0, 1), fraction.flatten(0, 1), speed, per_part, k,
-                       env.action_key)  # fmt: skip
-        result = evaluate(env, play)
+        plays = play(env, offset.flatten(0, 1), fraction.flatten(0, 1), speed, per_part, k,
+                     args.through_action)  # fmt: skip
+        result = evaluate(env, plays)
         captured = result.captured.view(s, n)
         when = result.time_to_capture.view(s, n)
         score = torch.where(captured, 1000.0 - when, -result.min_distance.view(s, n))
@@ -199,7 +188,14 @@ def ceiling_table(
 def write_plays(args, plays: dict) -> None:
     """Each scenario's best play to ``--out`` (if given), with what it needs to be flown again."""
     if args.out is not None:
-        doc = {"segments": args.segments, "gain": GAIN, "seed": args.seed, "plays": plays}
+        doc = {
+            "segments": args.segments,
+            "gain": GAIN,
+            "seed": args.seed,
+            "split": args.split,
+            "through_action": args.through_action,
+            "plays": plays,
+        }
         atomic_write_text(args.out, json.dumps(doc, indent=1) + "\n")
 
 
@@ -220,6 +216,11 @@ def main() -> None:
                         help="other policies' episodes.csv (the ceiling table)")  # fmt: skip
     parser.add_argument("--bins", type=float, nargs="+", default=[0.6, 0.8],
                         help="inner speed-ratio bin edges of the ceiling table")  # fmt: skip
+    parser.add_argument("--strategy", choices=STRATEGIES, default=None,
+                        help="search only the misses of defenders of this strategy")  # fmt: skip
+    parser.add_argument("--through-action", action="store_true",
+                        help="fly the plays through the run's own action (a correction "
+                             "to its law, behind its gate): what its learner can fly")  # fmt: skip
     parser.add_argument("--attackers", type=int, default=None,
                         help="fly only the first this many attackers of each team")  # fmt: skip
     args = parser.parse_args()
@@ -249,6 +250,8 @@ def main() -> None:
                          f"split of {args.scenarios} ({len(rows)} rows, the split has "
                          f"{len(ids)}: --split?)")  # fmt: skip
     info = {r["scenario_id"]: r for r in rows}
+    if args.strategy is not None:  # only the misses of that defender strategy are searched
+        missed = [i for i in missed if info[i]["defender_strategy"] == args.strategy]
     others = {}
     for path in args.others:  # each named by its evaluation's directory (test-pure_pursuit)
         other_missed, other_rows = misses(path)
@@ -271,7 +274,8 @@ def main() -> None:
 
     # One env per play, all in one wave (evaluate flies as many envs as the split has), so
     # a play's step counter is the episode's.
-    env = search_env(cfg, scenarios, args.split, index.repeat_interleave(n), k)
+    env = search_env(cfg, scenarios, args.split, index.repeat_interleave(n), k,
+                     args.through_action)  # fmt: skip
     per_part = -(-env.max_steps // args.segments)
     best_o, best_f, found = search(env, args, s, k, per_part)
     strategies = env.scenarios["defender_strategy"][::n, 0]
@@ -279,9 +283,9 @@ def main() -> None:
 
     # Each best play flown again, one env per scenario: a capture that needs the search's
     # batch (its rounding) is not counted.
-    env = search_env(cfg, scenarios, args.split, index, k)
+    env = search_env(cfg, scenarios, args.split, index, k, args.through_action)
     speed = env.scenarios["attacker_max_speed"][:, :k]
-    again = evaluate(env, AimPlay(best_o, best_f, speed, per_part, k, env.action_key))
+    again = evaluate(env, play(env, best_o, best_f, speed, per_part, k, args.through_action))
     env.close()
     hit = again.captured & ~found.isnan()
 

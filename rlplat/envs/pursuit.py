@@ -585,6 +585,14 @@ class PursuitEnv(EnvBase):
         last = self.routes.shape[1] - 1
         return self.routes[self.route, (self.waypoint + ahead).clamp(max=last)]
 
+    def law_action(self) -> Tensor:
+        """The guided action's law in the current state, (N, k, 3): what the next step adds
+        the learner's correction to (a script flown through the action inverts it)."""
+        if not self._guided:
+            raise ValueError(f"action {self.action_fn.name}: corrects no law")
+        p, v = self.dynamics.position, self.dynamics.velocity
+        return self.guidance(p, v, self.acceleration, self._meeting)
+
     def guidance(
         self,
         p: Tensor,
