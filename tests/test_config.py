@@ -417,6 +417,8 @@ SAC_PAPER_KEPT = {
     "anchor_weight": 0.0,
     "failure_weight": 1.0,
     "evader_weight": 1.0,
+    "demonstrations": [],
+    "demonstration_repeat": 4,
 }
 
 

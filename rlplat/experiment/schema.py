@@ -188,6 +188,8 @@ TRAIN_RULES: dict[str, Rule] = {
     "algo.actor_average": Num(ge=0, le=1),
     "algo.failure_weight": Num(gt=0),
     "algo.evader_weight": Num(gt=0),
+    "algo.demonstrations": TextList(),
+    "algo.demonstration_repeat": COUNT,
     "algo.compile": flag,
     "drone.name": Text(),
     "drone.learner": Choice(ROLES),
@@ -560,6 +562,8 @@ ADDED_KEYS: dict[str, Any] = {
     "action.correction_reach": 0.0,
     "algo.actor_average": 0.0,
     "algo.noise_correlation": 0.0,
+    "algo.demonstrations": [],
+    "algo.demonstration_repeat": 4,
 }
 
 

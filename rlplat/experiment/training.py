@@ -9,6 +9,7 @@ of a :class:`Run` (what a run is made of) and its :class:`RunState` (what it has
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import logging
 import random
@@ -20,6 +21,7 @@ from typing import Any
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDictBase
 from tensordict.nn import NormalParamExtractor
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
@@ -35,10 +37,11 @@ from rlplat.agents.checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
+from rlplat.agents.plays import AimPlay, Plays, load_plays
 from rlplat.agents.policies import REFERENCE, NoisyPolicy, make_scripted_policy
 from rlplat.agents.sac import NetSpec, SACAgent, actor_body, net_spec
 from rlplat.agents.transitions import replay_rows
-from rlplat.envs.pursuit import PursuitEnv
+from rlplat.envs.pursuit import PursuitEnv, flown_attackers
 from rlplat.errors import ConfigError
 from rlplat.eval.episodes import SCORE_NAME, EpisodeResults, evaluate
 from rlplat.eval.metrics import wilson_interval
@@ -125,6 +128,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     # Create the environments
     scenarios = resolve_scenarios(cfg, cfg.scenarios_dir)
     evaders = network_defenders(scenarios, algo.evader_weight)
+    demonstration_plays = [checked_plays(cfg, scenarios, path) for path in algo.demonstrations]
     env = build_env(cfg, scenarios=scenarios, split="train", num_envs=algo.num_envs, device=device)
     train_env = make_train_env(env)
     val_env = make_eval_env(cfg, scenarios, "val", device, compiled=True)
@@ -177,6 +181,16 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
             state.frames += prefilled
         log.info("replay buffer filled with %d frames of noisy %s (%d transitions)",
                  prefilled, algo.init_policy, len(buffer))  # fmt: skip
+    for plays in demonstration_plays:
+        if not plays.scenario_ids:
+            log.warning("algo.demonstrations: %s holds no play that captured", plays.path)
+            continue
+        demos, captured = demonstrations(cfg, scenarios, plays, device)
+        for _ in range(algo.demonstration_repeat):
+            buffer.extend(demos)
+        log.info("replay buffer: %d transitions of the %d of %d plays (%s) that capture "
+                 "through the action, stored %d times", demos.shape[0], captured,
+                 len(plays.scenario_ids), plays.path, algo.demonstration_repeat)  # fmt: skip
 
     # Validate the policy as initialised: best.pt is never worse than where learning started
     if resume_state is None:
@@ -493,6 +507,66 @@ def prefill(buffer, train_env, env: PursuitEnv, algo: DictConfig) -> int:
         buffer.extend(replay(batch, env.group, algo))
         frames += batch.numel()
     return frames
+
+
+def checked_plays(cfg: DictConfig, scenarios: ScenarioSet, path: str) -> Plays:
+    """The plays of a file of ``algo.demonstrations`` that captured in their search, checked
+    against the train split and the learner before any work: one line naming the field."""
+    plays = load_plays(path).capturing()
+    ids = set(scenarios.ids["train"])
+    foreign = [i for i in plays.scenario_ids if i not in ids]
+    if plays.split != "train":
+        raise ConfigError(f"algo.demonstrations: {path} holds plays of the {plays.split} split; "
+                          "valid: plays searched on the train split (--split train)")  # fmt: skip
+    if foreign:
+        raise ConfigError(f"algo.demonstrations: {path} holds plays of another scenario set "
+                          f"({foreign[0]} is not in this train split)")  # fmt: skip
+    if cfg.dynamics.name == "airsim":
+        raise ConfigError("algo.demonstrations: plays are flown on the embedded dynamics, "
+                          "got dynamics=airsim")  # fmt: skip
+    attackers = flown_attackers(cfg.env.attackers, scenarios)
+    if cfg.drone.learner != "attacker":
+        raise ConfigError("algo.demonstrations: plays fly an attacker, drone.learner is the "
+                          f"{cfg.drone.learner}")  # fmt: skip
+    if attackers != 1:
+        raise ConfigError(f"algo.demonstrations: plays are a lone attacker's, the run flies "
+                          f"{attackers} attackers (scenario.attackers, env.attackers)")  # fmt: skip
+    if plays.scenario_ids and plays.offset.shape[2] != 1:
+        raise ConfigError(
+            f"algo.demonstrations: {path} plays {plays.offset.shape[2]} attackers, the run "
+            "flies 1; valid: plays searched with --attackers 1"
+        )
+    return plays
+
+
+def demonstrations(
+    cfg: DictConfig, scenarios: ScenarioSet, plays: Plays, device
+) -> tuple[TensorDictBase, int]:
+    """The transitions of ``plays`` (each on its own train scenario) flown through the
+    learner's own action, as :func:`replay` stores them: every step of each play's first
+    episode, for the plays that capture so (behind a shut gate the law flies, and an episode
+    may leave its play); and how many of the plays those are."""
+    algo, split = cfg.algo, "train"
+    rows = torch.tensor([scenarios.ids[split].index(i) for i in plays.scenario_ids])
+    flown = dataclasses.replace(scenarios, splits={split: scenarios.split(split)[rows]},
+                                ids={split: plays.scenario_ids})  # fmt: skip
+    env = build_eval_env(cfg, scenarios=flown, split=split, num_envs=len(rows), device=device)
+    k = env.num_attackers
+    per_part = -(-env.max_steps // plays.offset.shape[1])
+    speed = env.scenarios["attacker_max_speed"][:, :k]  # env i flies scenario i (from seed 0)
+    policy = AimPlay(plays.offset.to(device), plays.fraction.to(device), speed, per_part, k,
+                     env.action_key, env=env)  # fmt: skip
+    env.set_seed(0)  # env i flies play i from the start of its scenario
+    batch = env.rollout(env.max_steps, policy, break_when_any_done=False)  # (N, T)
+    env.close()
+    done = batch["next", "done"].squeeze(-1)
+    t = torch.arange(done.shape[1], device=done.device)
+    first = torch.where(done.any(1), done.int().argmax(1), done.shape[1] - 1)
+    episode = t <= first.unsqueeze(1)  # each env's first episode
+    captured = (batch["next", "captured"].squeeze(-1) & episode).any(1)
+    keep = (episode & captured.unsqueeze(1)).flatten()
+    transitions = replay(batch, None, algo)  # (N * T,), each env's steps in order
+    return transitions[keep], int(captured.sum())
 
 
 # Validation, checkpoints, test -----------------------------------------------------------
