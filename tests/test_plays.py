@@ -81,8 +81,9 @@ def test_behind_a_shut_gate_a_play_flies_the_law(route_flyers):
     assert not torch.allclose(fly(plain, offset, fraction, False).positions, law.positions)
 
 
+@pytest.mark.parametrize("drone", ["attacker_v12", "attacker_v3"])  # a correction; eq. 2
 def test_demonstrations_store_the_plays_that_capture_through_the_action(
-    write_small_set, tmp_path, tiny_run, caplog
+    write_small_set, tmp_path, tiny_run, caplog, drone
 ):
     # attackers within 15 m of the defender, so that 10-s plays capture some
     near = write_small_set(tmp_path / "set", *(f"scenario.params.attacker_d{a}.{e}={s * b}"
@@ -95,14 +96,14 @@ def test_demonstrations_store_the_plays_that_capture_through_the_action(
     # What the run must store: the same plays flown on their scenarios, first episodes.
     first = dataclasses.replace(near, splits={"train": near.split("train")[: len(ids)]},
                                 ids={"train": ids})  # fmt: skip
-    env = make_env("drone=attacker_v12", SHORT, scenarios=first, split="train", num_envs=len(ids))
+    env = make_env(f"drone={drone}", SHORT, scenarios=first, split="train", num_envs=len(ids))
     flown = fly(env, offset, fraction, through=True)
     captured = flown.captured
     steps = int(flown.length[captured].sum())
     assert 0 < int(captured.sum()) < len(ids)
 
     with caplog.at_level("INFO", logger="rlplat.experiment.training"):
-        tiny_run(near, tmp_path / "run", "drone=attacker_v12", SHORT,
+        tiny_run(near, tmp_path / "run", f"drone={drone}", SHORT,
                  f"algo.demonstrations=[{path}]", "algo.demonstration_repeat=3")  # fmt: skip
     logged = (f"replay buffer: {steps} transitions of the {int(captured.sum())} of {len(ids)} "
               f"plays ({path}) that capture through the action, stored 3 times")  # fmt: skip

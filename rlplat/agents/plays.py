@@ -36,7 +36,8 @@ class AimPlay(TensorDictModuleBase):
     is the correction that makes the law's action plus it the play's command
     (``action_fn.inverse`` under :meth:`rlplat.envs.pursuit.PursuitEnv.law_action`). Behind a
     shut gate (``action.gate_high > 0``) the env flies its law instead, so the episode may
-    leave the play. Without ``env`` the action is the plain velocity command (eq. 2).
+    leave the play. Without ``env``, or with an env whose action corrects no law, the action
+    is the plain velocity command (eq. 2).
 
     The play counts its own calls as the episode's steps: one episode per env, from a reset.
     """
@@ -66,7 +67,7 @@ class AimPlay(TensorDictModuleBase):
         aim[..., 2] = aim[..., 2].clamp_min(LOWEST_AIM)
         command = GAIN * (aim - own) / self.max_speed.unsqueeze(-1)
         action = command.clamp(-1.0, 1.0) * self.fraction[:, part].unsqueeze(-1)  # (N, k, 3)
-        if self.env is not None:
+        if self.env is not None and getattr(self.env.action_fn, "guided", False):
             action = self.env.action_fn.inverse(action, self.env.law_action())
         return td.set(self.key, action if isinstance(self.key, tuple) else action[:, 0])
 
