@@ -45,7 +45,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import dataclasses
 import json
 import logging
 import sys
@@ -81,11 +80,8 @@ def search_env(cfg, scenarios, split: str, rows: torch.Tensor, attackers: int, t
     if not through:
         flown_cfg = OmegaConf.merge(plain_action(cfg), {"observation": None})
         flown_cfg.observation = {"name": "relative_state"}
-    picked = scenarios.split(split)[rows]
-    ids = [scenarios.ids[split][i] for i in rows.tolist()]
-    flown = dataclasses.replace(scenarios, splits={split: picked}, ids={split: ids})
-    return build_eval_env(flown_cfg, scenarios=flown, split=split, num_envs=len(rows),
-                          attackers=attackers)  # fmt: skip
+    return build_eval_env(flown_cfg, scenarios=scenarios.picked(split, rows), split=split,
+                          num_envs=len(rows), attackers=attackers)  # fmt: skip
 
 
 def play(env, offset, fraction, speed, per_part: int, k: int, through: bool) -> AimPlay:

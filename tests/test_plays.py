@@ -1,7 +1,6 @@
 """Aim plays (rlplat.agents.plays) flown plain and through a learner's action, and stored as
 demonstrations in the replay buffer (algo.demonstrations)."""
 
-import dataclasses
 import json
 
 import pytest
@@ -94,8 +93,7 @@ def test_demonstrations_store_the_plays_that_capture_through_the_action(
     offset[:8], fraction[:8] = 0.0, 1.0  # pure pursuit at full speed
     path = write_plays(tmp_path / "plays.json", ids, offset, fraction)
     # What the run must store: the same plays flown on their scenarios, first episodes.
-    first = dataclasses.replace(near, splits={"train": near.split("train")[: len(ids)]},
-                                ids={"train": ids})  # fmt: skip
+    first = near.picked("train", torch.arange(len(ids)))
     env = make_env(f"drone={drone}", SHORT, scenarios=first, split="train", num_envs=len(ids))
     flown = fly(env, offset, fraction, through=True)
     captured = flown.captured

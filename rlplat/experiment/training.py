@@ -9,7 +9,6 @@ of a :class:`Run` (what a run is made of) and its :class:`RunState` (what it has
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import json
 import logging
 import random
@@ -548,8 +547,7 @@ def demonstrations(
     may leave its play); and how many of the plays those are."""
     algo, split = cfg.algo, "train"
     rows = torch.tensor([scenarios.ids[split].index(i) for i in plays.scenario_ids])
-    flown = dataclasses.replace(scenarios, splits={split: scenarios.split(split)[rows]},
-                                ids={split: plays.scenario_ids})  # fmt: skip
+    flown = scenarios.picked(split, rows)
     env = build_eval_env(cfg, scenarios=flown, split=split, num_envs=len(rows), device=device)
     k = env.num_attackers
     per_part = -(-env.max_steps // plays.offset.shape[1])

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -150,6 +150,12 @@ class ScenarioSet:
         if name not in self.splits:
             raise ScenarioFileError(f"split: unknown split '{name}'; valid: {', '.join(SPLITS)}")
         return self.splits[name]
+
+    def picked(self, name: str, rows: torch.Tensor) -> ScenarioSet:
+        """A set holding only split ``name``'s rows ``rows`` (int64, in that order, repeats
+        allowed): an env of ``len(rows)`` envs walking it flies row ``rows[i]`` in env ``i``."""
+        ids = [self.ids[name][i] for i in rows.tolist()]
+        return replace(self, splits={name: self.split(name)[rows]}, ids={name: ids})
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> ScenarioSet:
