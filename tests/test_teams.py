@@ -217,8 +217,12 @@ def test_a_caught_defender_leaves_play_and_the_last_capture_ends_the_episode(tea
     partly = caught.any(-1) & ~caught.all(-1) & ~done
     assert partly.any(), "pure pursuit by two attackers should catch one defender before both"
     # The episode goes on after the first capture and ends (terminated) on the second.
-    grounded = (rollout["next", "positions"][..., 2] <= 0).any(-1)
-    assert torch.equal(rollout["next", "terminated"].squeeze(-1), caught.all(-1) | grounded)
+    # (or when a defender, or every attacker, is on the ground)
+    on_ground = rollout["next", "positions"][..., 2] <= 0
+    down = rollout["next", "attacker", "down"].squeeze(-1)
+    assert torch.equal(down, on_ground[..., :2].cummax(1).values | down)
+    crashed = on_ground[..., 2:].any(-1) | down.all(-1)
+    assert torch.equal(rollout["next", "terminated"].squeeze(-1), caught.all(-1) | crashed)
     assert (rollout["next", "captured"].squeeze(-1) == caught.all(-1)).all()
     # Each attacker sees which defender is still in play: the flag closing its block.
     obs = rollout["next", "attacker", "observation"]  # [v_own, (p, v, in play) per other drone]
@@ -236,6 +240,55 @@ def test_a_caught_defender_leaves_play_and_the_last_capture_ends_the_episode(tea
         assert (p[39] - p[30]).norm() < 0.1 * (p[9] - p[0]).norm()
         checked += 1
     assert checked
+
+
+def test_a_downed_attacker_holds_and_its_team_mate_flies_on(team_sets):
+    env = make_env("drone=attacker_v3", scenarios=team_sets[2, 1], split="val", num_envs=16)
+    env.set_seed(0)
+    pursue = make_scripted_policy("pure_pursuit", env)
+
+    def dive_first(td):  # the first attacker dives at full speed, its mate pursues
+        action = pursue(td)[env.action_key].clone()
+        action[:, 0] = torch.tensor([0.0, 0.0, -1.0])
+        return td.set(env.action_key, action)
+
+    rollout = env.rollout(400, dive_first, break_when_any_done=False)
+    nxt, done = rollout["next"], rollout["next", "done"].squeeze(-1)
+    down, before = nxt["attacker", "down"].squeeze(-1), rollout["attacker", "down"].squeeze(-1)
+    low = nxt["positions"][..., :2, 2] <= env.ground_altitude
+    ended = torch.cat([torch.zeros_like(done[:, :1]), done[:, :-1]], 1).cummax(1).values
+    first = ~ended  # the steps of each env's first episode
+    assert torch.equal(down[first], (low.cummax(1).values)[first])
+    fell = down[..., 0] & ~before[..., 0] & first
+    assert fell.sum() >= 12, "the diving attacker should land in most first episodes"
+    # Its landing does not end the episode: the mate flies on and catches some defenders.
+    assert (~done[fell] | nxt["captured"].squeeze(-1)[fell]).all()
+    captured_after = nxt["captured"].squeeze(-1) & before[..., 0] & first
+    assert captured_after.any(), "the pursuing mate should catch a defender after the landing"
+    # The downed attacker holds where it landed and earns nothing after its landing step; on it
+    # it pays the crash (ground_contact) that its mate does not.
+    on_ground = before[..., 0] & first
+    step = (nxt["positions"][..., 0, :] - rollout["positions"][..., 0, :]).norm(dim=-1)
+    assert step[on_ground].max() < 0.3 * env.control_period * env.max_speed[:, 0].min()
+    reward = nxt["attacker", "reward"].squeeze(-1)
+    assert (reward[..., 0][on_ground] == 0).all()
+    crash = env.reward_fn.weights["ground_contact"]
+    assert (reward[..., 0][fell] - reward[..., 1][fell] < 0.5 * crash).all()
+
+    # Both attackers diving: the episode ends (terminated) when the second one lands.
+    def dive_both(td):
+        action = torch.zeros(env.full_action_spec[env.action_key].shape)
+        action[..., 2] = -1.0
+        return td.set(env.action_key, action)
+
+    env.set_seed(0)
+    rollout = env.rollout(400, dive_both, break_when_any_done=False)
+    nxt, done = rollout["next"], rollout["next", "done"].squeeze(-1)
+    first = ~torch.cat([torch.zeros_like(done[:, :1]), done[:, :-1]], 1).cummax(1).values
+    down = nxt["attacker", "down"].squeeze(-1)
+    ends = down.all(-1) | nxt["captured"].squeeze(-1)
+    assert torch.equal(nxt["terminated"].squeeze(-1)[first], ends[first])
+    assert (down.any(-1) & ~down.all(-1) & first).any(), "one attacker should land first"
 
 
 def test_team_transitions_are_one_row_per_drone():
@@ -272,29 +325,30 @@ def test_team_transitions_are_one_row_per_drone():
         assert torch.equal(row["next", "done"], done[e])
 
 
-def test_a_caught_drone_ends_its_own_rows():
+@pytest.mark.parametrize(("group", "out"), [("defender", "caught"), ("attacker", "down")])
+def test_a_drone_out_of_play_ends_its_own_rows(group, out):
     envs, steps, agents = 1, 4, 2
     obs = torch.zeros(envs, steps, agents, 3)
     caught = torch.zeros(envs, steps + 1, agents, 1, dtype=torch.bool)
-    caught[0, 2:, 1] = True  # drone 1 is caught in step 1 (entries after it say so)
+    caught[0, 2:, 1] = True  # drone 1 leaves play in step 1 (entries after it say so)
     done = torch.zeros(envs, steps, 1, dtype=torch.bool)
 
     def team(t, extra=None):
-        x = {"observation": obs, "action": obs, "distance": obs[..., :1], "caught": caught[:, t]}
+        x = {"observation": obs, "action": obs, "distance": obs[..., :1], out: caught[:, t]}
         return TensorDict({**x, **(extra or {})}, batch_size=(envs, steps, agents))
 
     batch = TensorDict(
         {
-            "defender": team(slice(0, steps)),
+            group: team(slice(0, steps)),
             "next": {
-                "defender": team(slice(1, None), {"reward": obs[..., :1]}),
+                group: team(slice(1, None), {"reward": obs[..., :1]}),
                 "done": done,
                 "terminated": done,
             },
         },
         batch_size=(envs, steps),
     )
-    rows = agent_rows(batch, "defender")
+    rows = agent_rows(batch, group)
     assert rows["alive"].squeeze(-1).tolist() == [[True] * 4, [True, True, False, False]]
     assert rows["next", "terminated"].squeeze(-1).tolist() == [
         [False] * 4,

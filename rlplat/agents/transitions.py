@@ -79,9 +79,10 @@ def agent_rows(batch: TensorDictBase, group: str) -> TensorDictBase:
     ``observation``, ``action`` and ``distance`` of each drone, ``("next", ...)`` its next
     observation, reward and distance, and the env's ``done`` and ``terminated`` (the team's
     episode ends at once). Each row is one drone's trajectory, so the n-step and shaping steps
-    apply unchanged. A team whose drones can be caught (``(group, "caught")``, defenders) ends
-    a drone's own episode when it is caught (``terminated``); ``alive`` (envs * K, T, 1) says
-    which transitions start with the drone still in play (the others are not its to learn).
+    apply unchanged. A team whose drones can leave play (``(group, "caught")`` of defenders,
+    ``(group, "down")`` of attackers on the ground) ends a drone's own episode when it leaves
+    (``terminated``); ``alive`` (envs * K, T, 1) says which transitions start with the drone
+    still in play (the others are not its to learn).
     """
     envs, steps = batch.shape
     team, nxt = batch[group], batch["next"]
@@ -92,9 +93,10 @@ def agent_rows(batch: TensorDictBase, group: str) -> TensorDictBase:
 
     done, terminated = shared(nxt["done"]), shared(nxt["terminated"])
     alive = torch.ones_like(done)
-    if "caught" in team:
-        caught = nxt[group, "caught"]
-        done, terminated, alive = done | caught, terminated | caught, ~team["caught"]
+    for key in ("caught", "down"):
+        if key in team.keys():
+            out = nxt[group, key]
+            done, terminated, alive = done | out, terminated | out, ~team[key]
     rows = TensorDict(
         {
             "observation": team["observation"],
@@ -138,8 +140,8 @@ def replay_rows(
     """A collected ``(envs, T)`` batch as the flat transitions the learner trains on: a row
     per drone of a team (:func:`agent_rows`), shaped rewards (:func:`shape_rewards`), n-step
     targets (:func:`n_step_transitions`), only :data:`TRANSITION_KEYS` (and
-    ``steps_to_next_obs`` for n > 1); a team drone's transitions after it was caught are left
-    out."""
+    ``steps_to_next_obs`` for n > 1); a team drone's transitions after it left play (caught,
+    down) are left out."""
     keep = (*TRANSITION_KEYS, "steps_to_next_obs") if n_steps > 1 else TRANSITION_KEYS
     if group is not None:
         batch = agent_rows(batch, group)

@@ -90,7 +90,7 @@ class _Observation:
 
     An observation is the drone's own features followed by a block per other drone it sees:
     first each opponent, then each team-mate, in drone order (``other_layout`` per block, then,
-    with ``in_play``, 1 if that drone is still in play and 0 if it was caught). With one
+    with ``in_play``, 1 if that drone is still in play and 0 if it was caught or is down). With one
     opponent and no team-mate this is the 1-vs-1 observation.
 
     The env emits raw values (m, m/s); the agent's networks divide by ``scale`` first.

@@ -144,7 +144,8 @@ class PursuitEnv(EnvBase):
         team, from the observation component: the drone's own features, then each opponent's
         and each team-mate's. A team also gets ``(group, "distance")`` (N, K, 1), each drone's
         distance to its nearest opponent (an attacker's: the nearest defender in play), and a
-        defender team ``("defender", "caught")`` (N, K, 1). Also ``distance`` (N, 1) m, the least
+        defender team ``("defender", "caught")`` (N, K, 1), an attacker team
+        ``("attacker", "down")`` (N, K, 1), each drone out of play. Also ``distance`` (N, 1) m, the least
         attacker-defender distance among the defenders in play, ``visible`` (N, 1) bool (a
         defender in play inside some attacker's vision ellipsoid), ``captured`` (N, 1) bool
         (every defender caught), ``caught`` (N, m) bool per defender, ``positions``
@@ -165,10 +166,12 @@ class PursuitEnv(EnvBase):
     Episode end:
         a defender is caught when some attacker's closest approach to it during a step is <=
         capture_radius; a caught defender stops, hovers where it was caught and is out of play
-        (no attacker targets, measures or catches it again). Terminated when every defender is
-        caught, when a drone touches the ground (z <= ground_altitude) and, if
-        ``terminate_out_of_view``, when no defender in play is inside any attacker's vision
-        ellipsoid; truncated at ``time_limit`` or when every defender in play has flown its
+        (no attacker targets, measures or catches it again). An attacker that touches the ground
+        (z <= ground_altitude) is down: it is commanded to hold, catches nothing, earns nothing
+        after that step and is out of play (no defender flees from it, it sees nothing), while
+        its team-mates fly on. Terminated when every defender is caught, when a defender
+        touches the ground or every attacker is down and, if ``terminate_out_of_view``, when no
+        defender in play is inside any flying attacker's vision ellipsoid; truncated at ``time_limit`` or when every defender in play has flown its
         whole route. With m = 1 the first capture ends the episode. The observation of a done
         step is the true one.
     Config:
@@ -320,6 +323,7 @@ class PursuitEnv(EnvBase):
         self.waypoint = torch.zeros(num_envs, m, **z)
         self.nn_defender = torch.zeros(num_envs, m, dtype=torch.bool, device=self.device)
         self.caught = torch.zeros(num_envs, m, dtype=torch.bool, device=self.device)
+        self.down = torch.zeros(num_envs, k, dtype=torch.bool, device=self.device)  # attackers
         self.max_speed = torch.ones(num_envs, k + m, device=self.device)
         # Each drone's mean acceleration over the last control period (m/s^2).
         self.acceleration = torch.zeros(num_envs, k + m, 3, device=self.device)
@@ -368,8 +372,8 @@ class PursuitEnv(EnvBase):
         team_obs = {"observation": real(t, self.obs_fn.dim)}
         if self.group is not None:
             team_obs["distance"] = real(t, 1)
-        if self.group is not None and self.learner == DEFENDER:
-            team_obs["caught"] = flag(t, 1)
+        if self.group is not None:  # which of the team's drones are out: caught, or down
+            team_obs["caught" if self.learner == DEFENDER else "down"] = flag(t, 1)
         self.observation_spec = Composite(
             **team(**team_obs),
             distance=real(1),
@@ -426,6 +430,7 @@ class PursuitEnv(EnvBase):
             self.route = self.route.masked_scatter(rows, sc["route"])
             self.waypoint = self.waypoint.masked_fill(rows, 0)
             self.caught = self.caught.masked_fill(rows, False)
+            self.down = self.down.masked_fill(rows, False)
             self.nn_defender = self.nn_defender.masked_scatter(rows, sc["defender_strategy"] == NN)
             self.max_speed = self.max_speed.masked_scatter(
                 rows, torch.cat([sc["attacker_max_speed"], sc["defender_max_speed"]], -1)
@@ -477,6 +482,7 @@ class PursuitEnv(EnvBase):
         """
         n, t = self.batch_size[0], self.team_size
         running = ~self.ended  # the envs whose episode goes on
+        down = self.down  # the attackers on the ground before this step: out of play
         # Command every drone: the other role by its script, the learners by the policy.
         p, v = self.dynamics.position, self.dynamics.velocity
         target, route_done = self._target()
@@ -490,6 +496,7 @@ class PursuitEnv(EnvBase):
             attack, defend = self._attacker_command(p), own
         caught, in_play = self.caught, ~self.caught
         defend = defend.masked_fill(caught.unsqueeze(-1), 0.0)  # a caught defender holds
+        attack = attack.masked_fill(down.unsqueeze(-1), 0.0)  # and so does a downed attacker
         rel_before = self._relative(p)
         to_target = (target - p[:, self.defenders]).norm(dim=-1)
         if self._conforms:  # what a defender flying its route would do in this state
@@ -512,10 +519,20 @@ class PursuitEnv(EnvBase):
         # Captures: any attacker's closest approach to a defender in play, during the step.
         rel = self._relative(p)
         hit = _closest_approach(rel_before, rel) <= self.capture_radius  # (N, k, m)
+        hit = hit & ~down.unsqueeze(-1)  # a downed attacker catches nothing
         newly = (hit & in_play.unsqueeze(1)).any(1)  # (N, m)
         self.caught = self.caught | newly
+        # Crashes: an attacker on the ground is down for the rest of the episode; the episode
+        # ends on a defender's crash or once every attacker is down.
+        low = p[..., 2] <= self.ground_altitude
+        fell = low[:, self.attackers] & ~down
+        self.down = down | low[:, self.attackers]
+        crashed = low[:, self.defenders].any(-1) | self.down.all(-1)
         sight = self._sight(rel)
-        grounded = (p[..., 2] <= self.ground_altitude).any(-1)
+        # The crash term: an attacker's own fall, and for every learner a crash that ends it.
+        grounded = crashed.unsqueeze(-1).expand(n, t)
+        if self.learner == ATTACKER:
+            grounded = grounded | fell
         captured = newly
         if self.learner == ATTACKER:  # a capture is the team's; route terms read the defenders'
             if self.num_defenders > 1:
@@ -527,18 +544,19 @@ class PursuitEnv(EnvBase):
                 sight.team_distance,
                 sight.team_visible,
                 captured,
-                grounded.unsqueeze(-1).expand(n, t),
+                grounded,
                 self.reward_fn.distance_scale,
                 route_progress=progress,
                 setpoint_reached=reached,
                 action=action.reshape(n, t, -1),
             )
         )
-        if self.learner != ATTACKER:  # a defender caught before this step is out: no reward
-            total = total.masked_fill(caught, 0.0)
-            terms = {k: x.masked_fill(caught, 0.0) for k, x in terms.items()}
+        # A defender caught, or an attacker down, before this step is out: no reward.
+        out = caught if self.learner != ATTACKER else down
+        total = total.masked_fill(out, 0.0)
+        terms = {k: x.masked_fill(out, 0.0) for k, x in terms.items()}
         all_caught = self.caught.all(-1)
-        terminated = all_caught | grounded
+        terminated = all_caught | crashed
         if self.terminate_out_of_view:
             terminated = terminated | ~sight.visible
         flown = (self.waypoint >= self.routes.shape[1]) | self.caught
@@ -664,16 +682,27 @@ class PursuitEnv(EnvBase):
 
     def _sight(self, rel: Tensor) -> _Sight:
         """Distances and visibility of the pairs ``rel`` (N, k, m, 3), among the defenders in
-        play (all of them once every one is caught)."""
+        play (all of them once every one is caught) and the attackers flying (all of them once
+        every one is down); each attacker's own entries are its own, down or not."""
         distance, visible = rel.norm(dim=-1), inside_ellipsoid(rel, self.semi_axes)
         far, seen = distance, visible
         if self.num_defenders > 1:  # a lone defender is in play until the episode ends
             chased = targets(self.caught).unsqueeze(1)
             far, seen = far.masked_fill(~chased, float("inf")), seen & chased
+        own = far.amin(-1), seen.any(-1)  # each attacker: the nearest defender in play
+        if self.num_attackers > 1:  # a lone attacker flies until the episode ends
+            flying = self._flying().unsqueeze(-1)
+            far, seen = far.masked_fill(~flying, float("inf")), seen & flying
+            distance, visible = distance.masked_fill(~flying, float("inf")), visible & flying
         overall = far.flatten(1).amin(-1), seen.flatten(1).any(-1)
-        if self.learner == ATTACKER:  # each attacker: the nearest defender in play
-            return _Sight(far.amin(-1), seen.any(-1), *overall)
+        if self.learner == ATTACKER:
+            return _Sight(*own, *overall)
         return _Sight(distance.amin(1), visible.any(1), *overall)  # each defender: its attackers
+
+    def _flying(self) -> Tensor:
+        """The attackers not down, (N, k) bool; all of them once every one is (the episode
+        ends then)."""
+        return ~self.down | self.down.all(-1, keepdim=True)
 
     def _defender_command(self, p: Tensor, v: Tensor, target: Tensor, route_done: Tensor):
         """Scripted defenders: (N, m, 3) m/s."""
@@ -684,7 +713,7 @@ class PursuitEnv(EnvBase):
         # Eager, the network runs only while some defender flies it (its output is unused
         # otherwise); a compiled step always runs it (no data-dependent branch).
         if flies is not None and (torch.compiler.is_compiling() or bool(flies.any())):
-            near = nearest(own_p, p[:, self.attackers])
+            near = nearest(own_p, p[:, self.attackers], self._flying())
             view = DroneView(
                 own_p,
                 own_v,
@@ -759,8 +788,7 @@ class PursuitEnv(EnvBase):
             if t > 1:
                 view = replace(view, mate_acceleration=a[:, self.team][:, self._mate_index])
         if self.obs_fn.in_play:  # defenders can leave play: which drones still are
-            attackers = torch.ones_like(self.caught[:, :1]).expand(n, self.num_attackers)
-            playing = torch.cat([attackers, ~self.caught], 1)  # (N, k + m)
+            playing = torch.cat([~self.down, ~self.caught], 1)  # (N, k + m)
             others = playing[:, self.opponents].unsqueeze(1).expand(n, t, -1)
             mates = playing[:, self.team][:, self._mate_index]
             view = replace(view, other_in_play=others, mate_in_play=mates)
@@ -786,6 +814,8 @@ class PursuitEnv(EnvBase):
             team["distance"] = sight.team_distance.unsqueeze(-1)
             if self.learner == DEFENDER:
                 team["caught"] = self.caught.unsqueeze(-1)
+            else:
+                team["down"] = self.down.unsqueeze(-1)
             if team_reward is not None:
                 team["reward"] = team_reward
             out[self.group] = team
