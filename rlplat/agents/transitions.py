@@ -94,7 +94,7 @@ def agent_rows(batch: TensorDictBase, group: str) -> TensorDictBase:
     done, terminated = shared(nxt["done"]), shared(nxt["terminated"])
     alive = torch.ones_like(done)
     for key in ("caught", "down"):
-        if key in team.keys():
+        if key in team.keys():  # noqa: SIM118 (a tensordict's own keys, not nested ones)
             out = nxt[group, key]
             done, terminated, alive = done | out, terminated | out, ~team[key]
     rows = TensorDict(

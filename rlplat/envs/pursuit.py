@@ -145,11 +145,12 @@ class PursuitEnv(EnvBase):
         and each team-mate's. A team also gets ``(group, "distance")`` (N, K, 1), each drone's
         distance to its nearest opponent (an attacker's: the nearest defender in play), and a
         defender team ``("defender", "caught")`` (N, K, 1), an attacker team
-        ``("attacker", "down")`` (N, K, 1), each drone out of play. Also ``distance`` (N, 1) m, the least
-        attacker-defender distance among the defenders in play, ``visible`` (N, 1) bool (a
-        defender in play inside some attacker's vision ellipsoid), ``captured`` (N, 1) bool
-        (every defender caught), ``caught`` (N, m) bool per defender, ``positions``
-        and ``velocities`` (N, k + m, 3) m and m/s, ``max_speed`` (N, k + m) m/s per axis,
+        ``("attacker", "down")`` (N, K, 1), each drone out of play. Also ``distance`` (N, 1) m,
+        the least attacker-defender distance among the defenders in play (and the attackers
+        flying), ``visible`` (N, 1) bool (a defender in play inside some flying attacker's
+        vision ellipsoid), ``captured`` (N, 1) bool (every defender caught), ``caught`` (N, m)
+        bool per defender, ``positions`` and ``velocities`` (N, k + m, 3) m and m/s,
+        ``max_speed`` (N, k + m) m/s per axis,
         ``waypoint`` (N, m) the index of each defender's next setpoint, ``setpoints`` (N, m, 3)
         m its position (the last one once the route is flown), ``route_done`` (N, m) bool the
         whole route flown, ``scenario_index`` (N, 1) row of the split. The drone-indexed
@@ -162,7 +163,7 @@ class PursuitEnv(EnvBase):
         each weighted term ``("reward_terms", name)`` (N, 1) for a lone learner. A team gets
         ``(group, "reward")`` (N, K, 1), and the root ``reward`` and ``reward_terms`` are the
         team's means (what returns and episode metrics report). A defender earns nothing after
-        the step it is caught in.
+        the step it is caught in, an attacker nothing after the step it lands in.
     Episode end:
         a defender is caught when some attacker's closest approach to it during a step is <=
         capture_radius; a caught defender stops, hovers where it was caught and is out of play
@@ -171,9 +172,9 @@ class PursuitEnv(EnvBase):
         after that step and is out of play (no defender flees from it, it sees nothing), while
         its team-mates fly on. Terminated when every defender is caught, when a defender
         touches the ground or every attacker is down and, if ``terminate_out_of_view``, when no
-        defender in play is inside any flying attacker's vision ellipsoid; truncated at ``time_limit`` or when every defender in play has flown its
-        whole route. With m = 1 the first capture ends the episode. The observation of a done
-        step is the true one.
+        defender in play is inside any flying attacker's vision ellipsoid; truncated at
+        ``time_limit`` or when every defender in play has flown its whole route. With m = 1
+        the first capture ends the episode. The observation of a done step is the true one.
     Config:
         ``env`` of ``conf/train.yaml``; the drone counts come from the scenarios
         (``scenario.attackers``, ``scenario.defenders``); the components from the ``dynamics``,
