@@ -104,7 +104,8 @@ class _Observation:
         opponents: M, opponents the drone sees (set by the env factory from the scenarios).
         mates: K, team-mates the drone sees (set by the env factory from the scenarios).
         in_play: add each other drone's in-play flag (set by the env factory where defenders
-            can leave play before the episode ends: more than one of them).
+            can leave play before the episode ends: more than one of them; a downed attacker's
+            flag is 0 too).
     """
 
     # "p"/"v"/"w"/"a" per 3-vector; "s" speed, "t" time, "e" accel, "d" distance (scalars)
@@ -1070,8 +1071,9 @@ class Reward:
 
     With ``capture: 10, out_of_view: -1, distance_sq: -2, in_view_step: -0.1`` and
     ``distance_scale: 60`` this is paper eq. 3 exactly: +10 on capture; -1 if the defender is
-    out of view; otherwise -2 d^2 / 60^2 - 0.1. ``ground_contact`` prices the crash that ends
-    an episode (eq. 3 has no crash; see ``conf/reward/shaped.yaml``). The defender's reward
+    out of view; otherwise -2 d^2 / 60^2 - 0.1. ``ground_contact`` prices a crash: an attacker's own
+    landing, and for every learner a crash that ends the episode (eq. 3 has no crash; see
+    ``conf/reward/shaped.yaml``). The defender's reward
     (``conf/reward/evasion.yaml``) pays ``route_progress`` and ``setpoint_reached`` and charges
     ``proximity``, ``capture`` and ``ground_contact``.
     """

@@ -788,7 +788,7 @@ class PursuitEnv(EnvBase):
             view = replace(view, other_acceleration=other_a)
             if t > 1:
                 view = replace(view, mate_acceleration=a[:, self.team][:, self._mate_index])
-        if self.obs_fn.in_play:  # defenders can leave play: which drones still are
+        if self.obs_fn.in_play:  # which drones are still in play (not caught, not down)
             playing = torch.cat([~self.down, ~self.caught], 1)  # (N, k + m)
             others = playing[:, self.opponents].unsqueeze(1).expand(n, t, -1)
             mates = playing[:, self.team][:, self._mate_index]
