@@ -90,8 +90,8 @@ class _Observation:
 
     An observation is the drone's own features followed by a block per other drone it sees:
     first each opponent, then each team-mate, in drone order (``other_layout`` per block, then,
-    with ``in_play``, 1 if that drone is still in play and 0 if it was caught or is down). With one
-    opponent and no team-mate this is the 1-vs-1 observation.
+    with ``in_play``, 1 if that drone is still in play and 0 if it was caught or is down). With
+    one opponent and no team-mate this is the 1-vs-1 observation.
 
     The env emits raw values (m, m/s); the agent's networks divide by ``scale`` first.
 
@@ -1071,10 +1071,10 @@ class Reward:
 
     With ``capture: 10, out_of_view: -1, distance_sq: -2, in_view_step: -0.1`` and
     ``distance_scale: 60`` this is paper eq. 3 exactly: +10 on capture; -1 if the defender is
-    out of view; otherwise -2 d^2 / 60^2 - 0.1. ``ground_contact`` prices a crash: an attacker's own
-    landing, and for every learner a crash that ends the episode (eq. 3 has no crash; see
-    ``conf/reward/shaped.yaml``). The defender's reward
-    (``conf/reward/evasion.yaml``) pays ``route_progress`` and ``setpoint_reached`` and charges
+    out of view; otherwise -2 d^2 / 60^2 - 0.1. ``ground_contact`` prices a crash: an
+    attacker's own landing, and for every learner a crash that ends the episode (eq. 3 has no
+    crash; see ``conf/reward/shaped.yaml``). The defender's reward (``conf/reward/evasion.yaml``)
+    pays ``route_progress`` and ``setpoint_reached`` and charges
     ``proximity``, ``capture`` and ``ground_contact``.
     """
 

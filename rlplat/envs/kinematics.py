@@ -365,7 +365,8 @@ def route_law(
 
 def targets(caught: Tensor) -> Tensor:
     """The defenders an attacker may still chase and measure, (N, m) bool: those not caught, or
-    all of them once every one is (the episode ends then)."""
+    all of them once every one is (the episode ends then). Of attackers, ``targets(down)``: those
+    still flying."""
     return ~caught | caught.all(-1, keepdim=True)
 
 

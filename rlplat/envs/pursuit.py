@@ -692,18 +692,13 @@ class PursuitEnv(EnvBase):
             far, seen = far.masked_fill(~chased, float("inf")), seen & chased
         own = far.amin(-1), seen.any(-1)  # each attacker: the nearest defender in play
         if self.num_attackers > 1:  # a lone attacker flies until the episode ends
-            flying = self._flying().unsqueeze(-1)
+            flying = targets(self.down).unsqueeze(-1)  # the attackers not down
             far, seen = far.masked_fill(~flying, float("inf")), seen & flying
             distance, visible = distance.masked_fill(~flying, float("inf")), visible & flying
         overall = far.flatten(1).amin(-1), seen.flatten(1).any(-1)
         if self.learner == ATTACKER:
             return _Sight(*own, *overall)
         return _Sight(distance.amin(1), visible.any(1), *overall)  # each defender: its attackers
-
-    def _flying(self) -> Tensor:
-        """The attackers not down, (N, k) bool; all of them once every one is (the episode
-        ends then)."""
-        return ~self.down | self.down.all(-1, keepdim=True)
 
     def _defender_command(self, p: Tensor, v: Tensor, target: Tensor, route_done: Tensor):
         """Scripted defenders: (N, m, 3) m/s."""
@@ -714,7 +709,7 @@ class PursuitEnv(EnvBase):
         # Eager, the network runs only while some defender flies it (its output is unused
         # otherwise); a compiled step always runs it (no data-dependent branch).
         if flies is not None and (torch.compiler.is_compiling() or bool(flies.any())):
-            near = nearest(own_p, p[:, self.attackers], self._flying())
+            near = nearest(own_p, p[:, self.attackers], targets(self.down))  # not down
             view = DroneView(
                 own_p,
                 own_v,
