@@ -7,10 +7,11 @@ from pathlib import Path
 import pytest
 import torch
 from tensordict import TensorDict
-from torchrl.envs.utils import check_env_specs
+from torchrl.envs.utils import ExplorationType, check_env_specs, set_exploration_type
 
 from rlplat import make_env
 from rlplat.agents.policies import make_scripted_policy
+from rlplat.agents.sac import NetSpec
 from rlplat.agents.transitions import agent_rows
 from rlplat.envs.components import OBSERVATIONS, DroneView, sight_margin
 from rlplat.envs.kinematics import nearest, targets
@@ -584,3 +585,94 @@ def test_a_capture_pays_every_attacker_and_the_root_reward_is_the_team_mean(team
     p = nxt["positions"]
     own = (p[..., 2:3, :] - p[..., :2, :]).norm(dim=-1)
     torch.testing.assert_close(nxt["attacker", "distance"].squeeze(-1), own)
+
+
+def test_a_lone_checkpoint_starts_each_seat_of_a_team_run(team_sets, tmp_path, tiny, tiny_run):
+    # init_from: a team run starts with the lone run's actor and critics in each seat; they
+    # compute on the team's observations what they computed alone (team-mates weighted 0).
+    from rlplat.agents.checkpoint import actor_from_state, load_checkpoint, save_checkpoint
+    from rlplat.agents.export import observation_key
+    from rlplat.agents.sac import make_critic, net_spec
+    from rlplat.experiment.config import compose_config
+    from rlplat.experiment.factory import build_env
+    from rlplat.experiment.training import make_agent, make_interface, warm_start, warm_start_state
+
+    lone = tiny_run(team_sets[1, 1], tmp_path / "1v1")["run_dir"]
+    state = load_checkpoint(Path(lone) / "checkpoints" / "best.pt")
+    torch.manual_seed(0)  # a few updates leave the networks near their start: move them off
+    loss, prefix = state["agent"]["loss"], "actor_network_params."
+    moved = {k: v + torch.randn_like(v) for k, v in loss.items() if "network_params" in k}
+    loss.update({k: v for k, v in moved.items() if not k.endswith("inv_scale")})
+    learned = {k[len(prefix) :]: v for k, v in loss.items() if k.startswith(prefix)}
+    # The actor it flies (the moving average of the default's) is not the one it learns.
+    state["actor"] = {k: v + (0 if k.endswith("inv_scale") else torch.randn_like(v))
+                      for k, v in learned.items()}  # fmt: skip
+    save_checkpoint(tmp_path / "moved.pt", state)
+
+    overrides = [*tiny, f"scenarios_dir={team_sets[2, 1].path}", f"init_from={tmp_path}/moved.pt"]
+    cfg = compose_config("train", overrides)
+    env = build_env(cfg, scenarios=team_sets[2, 1], split="val", num_envs=5)
+    net = net_spec(env.obs_fn.scale, env.drone_action_spec.shape[-1], cfg.algo)
+    td = env.reset()
+    obs = td[observation_key(env.group)]  # (5, 2, D)
+    features = env.obs_fn.lone_features()
+    assert len(features) < obs.shape[-1]  # the team's observation holds more: its team-mate
+    flies = actor_from_state(state, env.drone_action_spec)
+    learns = actor_from_state({**state, "actor": learned}, env.drone_action_spec)
+
+    def each_seat_flies(policy, alone):
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            actions = policy(td.clone())[env.action_key]
+            for seat in range(2):
+                single = alone(TensorDict({"observation": obs[:, seat, features]}, [5]))
+                torch.testing.assert_close(actions[:, seat], single["action"])
+        assert not torch.equal(actions[:, 0], actions[:, 1])
+
+    # Without a moving average the run's actor is the one the checkpoint flew.
+    plain = compose_config("train", [*overrides, "algo.actor_average=0"])
+    agent = make_agent(net, env, plain.algo, "cpu")
+    warm_start(agent, *warm_start_state(plain), net, make_interface(plain, env), env)
+    each_seat_flies(agent.policy, flies)
+    # With one (the default's) it learns on from the checkpoint's actor and flies its average.
+    agent = make_agent(net, env, cfg.algo, "cpu")
+    assert agent.average_rate > 0
+    warm_start(agent, *warm_start_state(cfg), net, make_interface(cfg, env), env)
+    each_seat_flies(agent.flown_policy, flies)
+    each_seat_flies(agent.policy, learns)
+    saved_net = NetSpec(**{k: tuple(v) if isinstance(v, list) else v
+                           for k, v in state["net"].items()})  # fmt: skip
+    action = torch.rand(5, 2, net.action_dim)
+    for prefix in ("qvalue_network_params", "target_qvalue_network_params"):
+        for i in range(2):  # each of the two critics, and their targets
+            critic, team_critic = make_critic(saved_net), make_critic(net)
+            for c, entries in ((critic, loss), (team_critic, agent.loss.state_dict())):
+                c.module.load_state_dict(
+                    {
+                        k[len(prefix) + len(".module.") :]: v[i]
+                        for k, v in entries.items()
+                        if k.startswith(prefix + ".")
+                    }  # fmt: skip
+                )
+            q_team = team_critic(TensorDict({"observation": obs, "action": action}, [5, 2]))
+            q_lone = critic(
+                TensorDict({"observation": obs[..., features], "action": action}, [5, 2])
+            )
+            torch.testing.assert_close(q_team["state_action_value"], q_lone["state_action_value"])
+    assert agent.loss.log_alpha.item() == pytest.approx(loss["log_alpha"].item())
+    env.close()
+
+    # The run itself: it flies its own policy from the first frame and records where it started.
+    summary = tiny_run(team_sets[2, 1], tmp_path / "2v1", f"init_from={lone}")
+    assert summary["attackers"] == 2
+    saved = load_checkpoint(Path(summary["run_dir"]) / "checkpoints" / "last.pt")
+    assert saved["config"]["init_from"] == lone
+
+    # What cannot start it: no file; a team's checkpoint for a lone run; another learner.
+    with pytest.raises(ConfigError, match=r"^init_from: no checkpoint at .*nowhere"):
+        tiny_run(team_sets[2, 1], tmp_path / "x", f"init_from={tmp_path}/nowhere")
+    with pytest.raises(
+        ConfigError, match=r"^init_from: .* trained with attackers=2, this run has attackers=1$"
+    ):
+        tiny_run(team_sets[1, 1], tmp_path / "y", f"init_from={summary['run_dir']}")
+    with pytest.raises(ConfigError, match=r"^init_from: .* trained with drone.learner=attacker"):
+        tiny_run(team_sets[1, 1], tmp_path / "z", "drone=defender_v1", f"init_from={lone}")

@@ -129,3 +129,47 @@ def actor_from_state(
     if features is not None:
         body = nn.Sequential(SelectFeatures(features, device), body)
     return make_actor(net, action_spec, device, group=group, body=body)
+
+
+def embedded_networks(
+    state: dict[str, Any], net: NetSpec, features: Sequence[int]
+) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+    """A checkpoint's networks laid out for networks ``net`` whose observation holds the
+    checkpoint's at ``features``, in its order: a team drone's ``lone_features``, or every
+    feature for the same observation. Returns the SAC loss's entries (actor, critics, target
+    critics, entropy coefficient) and the actor the checkpoint flies (its ``actor``: the
+    moving average where the run kept one), as ``actor.state_dict()`` entries. The first
+    layers read those features, with their weights rescaled to ``net``'s observation scale,
+    and give every other feature a zero weight; the critics' action inputs stay last. The
+    networks so compute what they computed for the checkpoint. Input scales (``inv_scale``),
+    discount and entropy target are not returned: the new run's stay."""
+    saved, loss = state["net"], state["agent"]["loss"]
+    saved_dim, index = saved["obs_dim"], torch.tensor(list(features), dtype=torch.long)
+    # A network reads observation / scale: a column moves with the ratio of the two scales.
+    ratio = torch.tensor(net.obs_scale)[index] / torch.tensor(saved["obs_scale"])
+
+    def embed(key: str, value: torch.Tensor) -> torch.Tensor:
+        if not key.endswith("body.0.weight"):
+            return value
+        extra = value.shape[-1] - saved_dim  # first layer: (..., out, observation [+ action])
+        first = value.new_zeros(*value.shape[:-1], net.obs_dim + extra)
+        first[..., index] = value[..., :saved_dim] * ratio.to(value)
+        first[..., net.obs_dim :] = value[..., saved_dim:]
+        return first
+
+    entries = {
+        key: embed(key, value)
+        for key, value in loss.items()
+        if key.split(".", 1)[0] in _NETWORK_ENTRIES and not key.endswith("inv_scale")
+    }
+    flown = {k: embed(k, v) for k, v in state["actor"].items() if not k.endswith("inv_scale")}
+    return entries, flown
+
+
+#: The SAC loss's entries a warm start takes from a checkpoint (``embedded_networks``).
+_NETWORK_ENTRIES = (
+    "actor_network_params",
+    "qvalue_network_params",
+    "target_qvalue_network_params",
+    "log_alpha",
+)

@@ -416,6 +416,22 @@ class SACAgent:
         index, _ = sampler.sample(storage, batch_size)
         return self._compiled(keys, columns, index)
 
+    def load_networks(
+        self, entries: Mapping[str, torch.Tensor], flown: Mapping[str, torch.Tensor]
+    ) -> None:
+        """Start the networks at a checkpoint's (:func:`rlplat.agents.checkpoint.
+        embedded_networks`): the loss's ``entries`` (actor, critics, target critics, entropy
+        coefficient), and the actor it flew, ``flown``, which this agent flies from here: as
+        the start of its moving average, or, without one, as its actor. The optimisers start
+        afresh."""
+        if self.average_rate == 0:
+            entries = {**entries, **{f"actor_network_params.{k}": v for k, v in flown.items()}}
+        self.loss.load_state_dict({**self.loss.state_dict(), **entries})
+        if self.average_rate > 0:
+            self.flown_actor.load_state_dict({**self.flown_actor.state_dict(), **flown})
+        if self._compiled is not None:
+            self._compiled.bind()
+
     def restart_average(self) -> None:
         """Start the moving average at the actor's weights as they are now."""
         if self.average_rate > 0:

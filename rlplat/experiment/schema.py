@@ -132,6 +132,7 @@ WANDB_MODES = ("offline", "online")
 TRAIN_RULES: dict[str, Rule] = {
     "seed": Num(integer=True, ge=0, le=2**32 - 1),  # numpy's seed range
     "resume": flag,
+    "init_from": Text(null=True),
     "scenarios_dir": Text(null=True),
     "scenario": scenario,
     "train.total_frames": COUNT,
@@ -564,6 +565,7 @@ ADDED_KEYS: dict[str, Any] = {
     "algo.noise_correlation": 0.0,
     "algo.demonstrations": [],
     "algo.demonstration_repeat": 4,
+    "init_from": None,
 }
 
 

@@ -30,17 +30,20 @@ from tqdm import tqdm
 
 from rlplat.agents.checkpoint import (
     check_compatible,
+    check_route_path,
+    embedded_networks,
     load_checkpoint,
     rng_state,
     route_path_interface,
     save_checkpoint,
+    saved_interface,
     set_rng_state,
 )
 from rlplat.agents.plays import AimPlay, Plays, load_plays
 from rlplat.agents.policies import REFERENCE, NoisyPolicy, make_scripted_policy
 from rlplat.agents.sac import NetSpec, SACAgent, actor_body, net_spec
 from rlplat.agents.transitions import replay_rows
-from rlplat.envs.pursuit import PursuitEnv, flown_attackers
+from rlplat.envs.pursuit import ROLES, PursuitEnv, flown_attackers
 from rlplat.errors import ConfigError
 from rlplat.eval.episodes import SCORE_NAME, EpisodeResults, evaluate
 from rlplat.eval.metrics import wilson_interval
@@ -118,6 +121,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     run_dir, algo = make_run_dir(run_dir), cfg.algo
     config = OmegaConf.to_container(cfg, resolve=True)
     resume_state = load_resume_state(run_dir, config) if cfg.resume else None
+    init = warm_start_state(cfg)
     if cfg.train.threads is not None:
         # On a few cores, runs side by side (hydra/launcher=joblib) want one thread each:
         # torch's threads wait for each other on every small kernel when a core is taken.
@@ -142,6 +146,8 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     # Create the agent
     seed_everything(cfg.seed, env)
     agent = make_agent(net, env, algo, device)
+    if init is not None:
+        warm_start(agent, *init, net, interface, env)
     run = Run(run_dir, cfg.drone.learner, env, val_env, scenarios, agent, net, interface, config)
     state = RunState()
     if resume_state is not None:
@@ -167,8 +173,10 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     )  # not checkpointed: a resumed run refills it (see the scripted start below)
     # A scripted init_policy fills the buffer before the collector starts, also on a resume;
     # otherwise the collector starts with random actions, or with the policy on a resume.
-    scripted_start = algo.init_policy != "random" and algo.init_random_frames > 0
-    random_frames = 0 if resume_state is not None or scripted_start else algo.init_random_frames
+    # A warm start (init_from) flies its own policy from the first frame.
+    scripted_start = init is None and algo.init_policy != "random" and algo.init_random_frames > 0
+    own_policy = resume_state is not None or init is not None
+    random_frames = 0 if own_policy or scripted_start else algo.init_random_frames
     collector = make_collector(train_env, agent.collect_policy, algo, random_frames, device)
 
     # Scripted start
@@ -273,6 +281,56 @@ def load_resume_state(run_dir: Path, config: dict[str, Any]) -> dict[str, Any]:
     state = load_checkpoint(run_dir / "checkpoints" / "last.pt")
     check_resume(state["config"], config)
     return state
+
+
+def warm_start_state(cfg: DictConfig) -> tuple[Path, dict[str, Any]] | None:
+    """``init_from``'s checkpoint (a run directory: its ``checkpoints/best.pt``), loaded;
+    None without one or on a resume (which continues from its own ``last.pt``)."""
+    if cfg.init_from is None or cfg.resume:
+        return None
+    path = Path(cfg.init_from)
+    if path.is_dir():
+        path = path / "checkpoints" / "best.pt"
+    if not path.is_file():
+        raise ConfigError(f"init_from: no checkpoint at {path} (a run directory or a .pt file)")
+    return path, load_checkpoint(path)
+
+
+def warm_start(agent: SACAgent, path: Path, state: dict[str, Any], net: NetSpec,
+               interface: dict[str, Any], env: PursuitEnv) -> None:  # fmt: skip
+    """Start the agent's actor, critics and entropy coefficient at a checkpoint's, and fly
+    the actor it flew (its moving average where it kept one); the optimisers and the replay
+    buffer start afresh. The checkpoint must share the drone's
+    interface and network sizes; one trained alone may start a team of its role against as
+    many opponents (each drone then reads it on its ``lone_features``, its team-mates with
+    zero weights), as ``evaluate.py lone_in_team=true`` flies it."""
+    check_route_path(state, env, path, "init_from")
+    saved, here = saved_interface(state), dict(interface)
+    saved.pop("route_path", None), here.pop("route_path", None)
+    learners = "attackers" if ROLES[env.learner] == "attacker" else "defenders"
+    alone = saved[learners] == 1 < here[learners]
+    if alone:
+        saved[learners] = here[learners]  # a lone drone's network starts each of the team's
+    for key, value in here.items():
+        if saved.get(key) != value:
+            raise ConfigError(
+                f"init_from: {path} was trained with {key}={saved.get(key)}, this run has "
+                f"{key}={value}"
+            )
+    for key, value in net.as_dict().items():
+        if key not in ("obs_dim", "obs_scale") and state["net"][key] != value:
+            raise ConfigError(
+                f"init_from: {path} has {key}={state['net'][key]}, this run has {key}={value}"
+            )
+    # In-play flags come with more than one defender, as for evaluate.py's lone_in_team.
+    features = env.obs_fn.lone_features(saved["defenders"] > 1) if alone else range(net.obs_dim)
+    if len(features) != state["net"]["obs_dim"]:
+        raise ConfigError(
+            f"init_from: {path} has obs_dim={state['net']['obs_dim']}, this run's observation "
+            f"gives {len(features)}"
+        )
+    agent.load_networks(*embedded_networks(state, net, features))
+    log.info("networks start at %s%s", path, ", in each seat of the team" if alone else "")
 
 
 def make_interface(cfg: DictConfig, env: PursuitEnv) -> dict[str, Any]:
