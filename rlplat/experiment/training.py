@@ -300,10 +300,10 @@ def warm_start(agent: SACAgent, path: Path, state: dict[str, Any], net: NetSpec,
                interface: dict[str, Any], env: PursuitEnv) -> None:  # fmt: skip
     """Start the agent's actor, critics and entropy coefficient at a checkpoint's, and fly
     the actor it flew (its moving average where it kept one); the optimisers and the replay
-    buffer start afresh. The checkpoint must share the drone's
-    interface and network sizes; one trained alone may start a team of its role against as
-    many opponents (each drone then reads it on its ``lone_features``, its team-mates with
-    zero weights), as ``evaluate.py lone_in_team=true`` flies it."""
+    buffer start afresh. The checkpoint must share the drone's interface and network sizes;
+    one trained alone may start a team of its role against as many opponents (each drone then
+    reads it on its ``lone_features``, its team-mates with zero weights), as ``evaluate.py
+    lone_in_team=true`` flies it."""
     check_route_path(state, env, path, "init_from")
     saved, here = saved_interface(state), dict(interface)
     saved.pop("route_path", None), here.pop("route_path", None)
