@@ -642,15 +642,15 @@ def test_a_lone_checkpoint_starts_each_seat_of_a_team_run(team_sets, tmp_path, t
     saved_net = NetSpec(**{k: tuple(v) if isinstance(v, list) else v
                            for k, v in state["net"].items()})  # fmt: skip
     action = torch.rand(5, 2, net.action_dim)
-    for prefix in ("qvalue_network_params", "target_qvalue_network_params"):
+    for critics in ("qvalue_network_params", "target_qvalue_network_params"):
         for i in range(2):  # each of the two critics, and their targets
             critic, team_critic = make_critic(saved_net), make_critic(net)
             for c, entries in ((critic, loss), (team_critic, agent.loss.state_dict())):
                 c.module.load_state_dict(
                     {
-                        k[len(prefix) + len(".module.") :]: v[i]
+                        k[len(critics) + len(".module.") :]: v[i]
                         for k, v in entries.items()
-                        if k.startswith(prefix + ".")
+                        if k.startswith(critics + ".")
                     }  # fmt: skip
                 )
             q_team = team_critic(TensorDict({"observation": obs, "action": action}, [5, 2]))

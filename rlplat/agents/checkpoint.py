@@ -90,16 +90,27 @@ def check_route_path(state: dict[str, Any], env, path, where: str) -> None:
 
 def check_compatible(state: dict[str, Any], net: NetSpec, interface: dict[str, Any], path) -> None:
     """Refuse to continue from a checkpoint whose networks or drone interface differ."""
-    saved_net, saved_iface = state["net"], saved_interface(state)
-    for key, value in net.as_dict().items():
-        if saved_net[key] != value:
+    check_same_net(state, net.as_dict(), path, "resume")
+    check_same_interface(saved_interface(state), interface, path, "resume")
+
+
+def check_same_net(state: dict[str, Any], sizes: dict[str, Any], path, where: str) -> None:
+    """Refuse a checkpoint whose networks differ in one of ``sizes`` (``NetSpec`` fields)."""
+    for key, value in sizes.items():
+        if state["net"][key] != value:
             raise ConfigError(
-                f"resume: {path} has {key}={saved_net[key]}, this run has {key}={value}"
+                f"{where}: {path} has {key}={state['net'][key]}, this run has {key}={value}"
             )
+
+
+def check_same_interface(
+    saved: dict[str, Any], interface: dict[str, Any], path, where: str
+) -> None:
+    """Refuse a checkpoint trained with another value of one of ``interface``'s keys."""
     for key, value in interface.items():
-        if saved_iface.get(key) != value:
+        if saved.get(key) != value:
             raise ConfigError(
-                f"resume: {path} was trained with {key}={saved_iface.get(key)}, "
+                f"{where}: {path} was trained with {key}={saved.get(key)}, "
                 f"this run has {key}={value}"
             )
 

@@ -31,6 +31,8 @@ from tqdm import tqdm
 from rlplat.agents.checkpoint import (
     check_compatible,
     check_route_path,
+    check_same_interface,
+    check_same_net,
     embedded_networks,
     load_checkpoint,
     rng_state,
@@ -306,29 +308,16 @@ def warm_start(agent: SACAgent, path: Path, state: dict[str, Any], net: NetSpec,
     lone_in_team=true`` flies it."""
     check_route_path(state, env, path, "init_from")
     saved, here = saved_interface(state), dict(interface)
-    saved.pop("route_path", None), here.pop("route_path", None)
+    here.pop("route_path", None)  # checked above
     learners = "attackers" if ROLES[env.learner] == "attacker" else "defenders"
     alone = saved[learners] == 1 < here[learners]
     if alone:
         saved[learners] = here[learners]  # a lone drone's network starts each of the team's
-    for key, value in here.items():
-        if saved.get(key) != value:
-            raise ConfigError(
-                f"init_from: {path} was trained with {key}={saved.get(key)}, this run has "
-                f"{key}={value}"
-            )
-    for key, value in net.as_dict().items():
-        if key not in ("obs_dim", "obs_scale") and state["net"][key] != value:
-            raise ConfigError(
-                f"init_from: {path} has {key}={state['net'][key]}, this run has {key}={value}"
-            )
+    check_same_interface(saved, here, path, "init_from")
     # In-play flags come with more than one defender, as for evaluate.py's lone_in_team.
     features = env.obs_fn.lone_features(saved["defenders"] > 1) if alone else range(net.obs_dim)
-    if len(features) != state["net"]["obs_dim"]:
-        raise ConfigError(
-            f"init_from: {path} has obs_dim={state['net']['obs_dim']}, this run's observation "
-            f"gives {len(features)}"
-        )
+    sizes = {k: v for k, v in net.as_dict().items() if k not in ("obs_dim", "obs_scale")}
+    check_same_net(state, {**sizes, "obs_dim": len(features)}, path, "init_from")
     agent.load_networks(*embedded_networks(state, net, features))
     log.info("networks start at %s%s", path, ", in each seat of the team" if alone else "")
 
