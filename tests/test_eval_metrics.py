@@ -278,6 +278,34 @@ def test_against_sets_each_policy_against_the_reference_scenario_by_scenario(tmp
     assert paired_markdown([one]).endswith("| attacker_v8 (best) | 2 | 1 | +1.000 | 1 / 0 | – |")
 
 
+def test_pool_reads_evaluation_directories_as_it_reads_runs(tmp_path, capsys):
+    """An evaluate.py out_dir (a run flown on another scenario set, a baseline evaluated once)
+    pools as the same evaluation under a run's eval/ does; one of another split is refused."""
+    from rlplat.errors import ConfigError
+    from rlplat.eval.pool import main, paired_rows, pooled_rows
+
+    _headroom_evaluation(tmp_path, "s0", "best", "checkpoint", [1, 1, 0, 0, 1],
+                         times=[8, 10, 0, 0, 20], split="test")  # fmt: skip
+    _headroom_evaluation(tmp_path, "s1", "best", "checkpoint", [0, 1, 0, 0, 1],
+                         times=[0, 12, 0, 0, 30], split="test")  # fmt: skip
+    _headroom_evaluation(tmp_path, "s1", "proportional_navigation", "proportional_navigation",
+                         [0, 1, 1, 0, 0], times=[0, 14, 5, 0, 0], split="test")  # fmt: skip
+    runs = [tmp_path / "s0", tmp_path / "s1"]
+    evaluations = [
+        tmp_path / "s0" / "eval" / "test-best",
+        *sorted((tmp_path / "s1" / "eval").iterdir()),
+    ]
+    assert pooled_rows(evaluations) == pooled_rows(runs)
+    (row,) = paired_rows(evaluations, "proportional_navigation")
+    assert row == paired_rows(runs, "proportional_navigation")[0] and row["runs"] == 2
+    with pytest.raises(ConfigError, match="evaluates the test split, not val; pass --split test"):
+        pooled_rows(evaluations, split="val")
+    with pytest.raises(SystemExit):  # one line on stderr, and no table before it
+        main([*map(str, evaluations), "--split", "val"])
+    out = capsys.readouterr()
+    assert out.out == "" and out.err.count("\n") == 1
+
+
 def test_against_refuses_an_unknown_reference_and_different_scenarios(tmp_path, capsys):
     from rlplat.errors import ConfigError
     from rlplat.eval.pool import main, paired_rows

@@ -1,11 +1,13 @@
 """Pool the evaluations of several runs: every episode of every seed in one table per policy.
 
 ``python -m rlplat.eval.pool DIR [DIR ...] [--split test]`` reads ``DIR/eval/<split>-*/``
-(``summary.json`` and ``episodes.csv``, written by ``evaluate.py``) of each run and prints one
-Markdown row per policy: the episodes of all runs pooled (capture rate with its 95 % Wilson
-interval, mean and median time to capture) and, where the evaluations report the capture
-ceiling, the capture rate on the scenarios it covers against it. Seeds of one configuration
-fly the same scenarios, so a scripted baseline's rows repeat the same episodes once per run.
+(``summary.json`` and ``episodes.csv``, written by ``evaluate.py``) of each run, or a DIR that
+is itself one evaluation (an ``evaluate.py`` ``out_dir``: a run flown on another scenario set or
+in a team), and prints one Markdown row per policy: the episodes of all runs pooled (capture
+rate with its 95 % Wilson interval, mean and median time to capture) and, where the evaluations
+report the capture ceiling, the capture rate on the scenarios it covers against it. Seeds of
+one configuration fly the same scenarios, so a scripted baseline's rows repeat the same
+episodes once per run; one evaluation of it, passed once, counts once.
 
 With ``--headroom`` a second table splits the scenarios by defender strategy and speed-ratio
 bin (of the first attacker and defender, as ``episodes.csv`` records them; with ``--ratio
@@ -65,10 +67,7 @@ def _read(run_dirs: list[Path], split: str) -> Evaluations:
     learned: dict[str, bool] = {}
     summaries: list[dict[str, Any]] = []
     for run_dir in run_dirs:
-        paths = sorted(Path(run_dir).glob(f"eval/{split}-*/summary.json"))
-        if not paths:
-            raise ConfigError(f"pool: no evaluation of the {split} split under {run_dir}/eval")
-        for path in paths:
+        for path in _evaluations(Path(run_dir), split):
             summary = json.loads(path.read_text())
             summaries.append(summary)
             label = policy_label(summary)
@@ -78,6 +77,24 @@ def _read(run_dirs: list[Path], split: str) -> Evaluations:
                 episodes[label].extend(csv.DictReader(f))
     order = sorted(episodes, key=lambda k: (not learned[k], list(episodes).index(k)))
     return {label: episodes[label] for label in order}, runs, summaries
+
+
+def _evaluations(path: Path, split: str) -> list[Path]:
+    """The ``summary.json`` of each evaluation ``path`` names: a training run's
+    ``eval/<split>-*``, or one evaluation directory (``evaluate.py``'s ``out_dir``: its
+    ``summary.json`` beside its ``episodes.csv``), which must be of ``split``."""
+    own = path / "summary.json"
+    if own.is_file() and (path / "episodes.csv").is_file():
+        flown = json.loads(own.read_text()).get("split")
+        if flown != split:
+            raise ConfigError(
+                f"pool: {path} evaluates the {flown} split, not {split}; pass --split {flown}"
+            )
+        return [own]
+    paths = sorted(path.glob(f"eval/{split}-*/summary.json"))
+    if not paths:
+        raise ConfigError(f"pool: no evaluation of the {split} split under {path}/eval")
+    return paths
 
 
 def _one_set(summaries: list[dict[str, Any]], option: str) -> None:
@@ -367,7 +384,13 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         prog="python -m rlplat.eval.pool", description=__doc__.splitlines()[0]
     )
-    parser.add_argument("run_dirs", nargs="+", type=Path, help="training run directories")
+    parser.add_argument(
+        "run_dirs",
+        nargs="+",
+        type=Path,
+        help="training run directories (their eval/<split>-*), or evaluation directories "
+        "(an evaluate.py out_dir, e.g. of another scenario set)",
+    )
     parser.add_argument("--split", default="test", help="test | val | train (default: test)")
     parser.add_argument(
         "--headroom",
