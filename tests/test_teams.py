@@ -11,7 +11,6 @@ from torchrl.envs.utils import ExplorationType, check_env_specs, set_exploration
 
 from rlplat import make_env
 from rlplat.agents.policies import make_scripted_policy
-from rlplat.agents.sac import NetSpec
 from rlplat.agents.transitions import agent_rows
 from rlplat.envs.components import OBSERVATIONS, DroneView, sight_margin
 from rlplat.envs.kinematics import nearest, targets
@@ -590,7 +589,12 @@ def test_a_capture_pays_every_attacker_and_the_root_reward_is_the_team_mean(team
 def test_a_lone_checkpoint_starts_each_seat_of_a_team_run(team_sets, tmp_path, tiny, tiny_run):
     # init_from: a team run starts with the lone run's actor and critics in each seat; they
     # compute on the team's observations what they computed alone (team-mates weighted 0).
-    from rlplat.agents.checkpoint import actor_from_state, load_checkpoint, save_checkpoint
+    from rlplat.agents.checkpoint import (
+        actor_from_state,
+        load_checkpoint,
+        save_checkpoint,
+        saved_net,
+    )
     from rlplat.agents.export import observation_key
     from rlplat.agents.sac import make_critic, net_spec
     from rlplat.experiment.config import compose_config
@@ -639,12 +643,10 @@ def test_a_lone_checkpoint_starts_each_seat_of_a_team_run(team_sets, tmp_path, t
     warm_start(agent, *warm_start_state(cfg), net, make_interface(cfg, env), env)
     each_seat_flies(agent.flown_policy, flies)
     each_seat_flies(agent.policy, learns)
-    saved_net = NetSpec(**{k: tuple(v) if isinstance(v, list) else v
-                           for k, v in state["net"].items()})  # fmt: skip
     action = torch.rand(5, 2, net.action_dim)
     for critics in ("qvalue_network_params", "target_qvalue_network_params"):
         for i in range(2):  # each of the two critics, and their targets
-            critic, team_critic = make_critic(saved_net), make_critic(net)
+            critic, team_critic = make_critic(saved_net(state)), make_critic(net)
             for c, entries in ((critic, loss), (team_critic, agent.loss.state_dict())):
                 c.module.load_state_dict(
                     {

@@ -120,6 +120,11 @@ def load_policy(path: str | Path, action_spec, device: torch.device | str = "cpu
     return actor_from_state(load_checkpoint(path), action_spec, device)
 
 
+def saved_net(state: dict[str, Any]) -> NetSpec:
+    """The network sizes a loaded checkpoint was trained with."""
+    return NetSpec(**{k: tuple(v) if isinstance(v, list) else v for k, v in state["net"].items()})
+
+
 def actor_from_state(
     state: dict[str, Any],
     action_spec,
@@ -131,7 +136,7 @@ def actor_from_state(
     and writing that group's entries (a team flying the shared network); with ``features``,
     reading only those features of the observation (a network trained alone flying each
     drone of a team: the observation's ``lone_features``)."""
-    net = NetSpec(**{k: tuple(v) if isinstance(v, list) else v for k, v in state["net"].items()})
+    net = saved_net(state)
     actor = make_actor(net, action_spec, device)
     actor.load_state_dict(state["actor"])
     if group is None and features is None:

@@ -69,6 +69,12 @@ def _read(run_dirs: list[Path], split: str) -> Evaluations:
     for run_dir in run_dirs:
         for path in _evaluations(Path(run_dir), split):
             summary = json.loads(path.read_text())
+            flown = summary.get("split", split)  # a run's eval/<split>-* are of it by name
+            if flown != split:
+                raise ConfigError(
+                    f"pool: {path.parent} evaluates the {flown} split, not {split}; "
+                    f"pass --split {flown}"
+                )
             summaries.append(summary)
             label = policy_label(summary)
             learned[label] = is_learned(summary)
@@ -82,14 +88,9 @@ def _read(run_dirs: list[Path], split: str) -> Evaluations:
 def _evaluations(path: Path, split: str) -> list[Path]:
     """The ``summary.json`` of each evaluation ``path`` names: a training run's
     ``eval/<split>-*``, or one evaluation directory (``evaluate.py``'s ``out_dir``: its
-    ``summary.json`` beside its ``episodes.csv``), which must be of ``split``."""
+    ``summary.json`` beside its ``episodes.csv``)."""
     own = path / "summary.json"
     if own.is_file() and (path / "episodes.csv").is_file():
-        flown = json.loads(own.read_text()).get("split")
-        if flown != split:
-            raise ConfigError(
-                f"pool: {path} evaluates the {flown} split, not {split}; pass --split {flown}"
-            )
         return [own]
     paths = sorted(path.glob(f"eval/{split}-*/summary.json"))
     if not paths:
