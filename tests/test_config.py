@@ -275,7 +275,6 @@ BAD_EVALUATE = [
     (["run_dir=r", "device=gpu"], "device", "'gpu'"),
     (["run_dir=r", "attackers=0"], "attackers", "0"),
     (["run_dir=r", "plots=sometimes"], "plots", "'sometimes'"),
-    (["run_dir=r", "compare=true", "out_dir=x"], "out_dir", "'x'"),
     (["run_dir=r", "policy=pure_pursuit", "ckpt=last"], "ckpt", "'last'"),
     (["run_dir=r", "ensemble=r2"], "ensemble", "'r2'"),
     (["run_dir=r", "policy=pure_pursuit", "ensemble=[r2]"], "ensemble", "policy=pure_pursuit"),

@@ -263,6 +263,32 @@ def test_compare_mode_flies_every_baseline_in_one_command(trained_run):
     assert not list((trained_run / "eval" / "val-best").glob("*.png"))  # plots=false
 
 
+def test_compare_mode_writes_under_out_dir_and_leaves_the_run_alone(trained_run, tmp_path, run_python):
+    before = sorted(p.relative_to(trained_run) for p in trained_run.rglob("*"))
+    out = tmp_path / "flown-elsewhere"
+    cfg = compose_config(
+        "evaluate",
+        [f"run_dir={trained_run}", "split=val", "compare=true", "plots=false", f"out_dir={out}"],
+    )
+    lines = evaluate_from_config(cfg)
+    assert sorted(p.name for p in out.iterdir()) == [
+        "compare-val.csv", "compare-val.md", "compare-val.png",
+        "val-best", "val-proportional_navigation", "val-pure_pursuit", "val-route_intercept",
+    ]  # fmt: skip
+    assert sorted(p.relative_to(trained_run) for p in trained_run.rglob("*")) == before
+    for line in lines[:4]:  # each policy's report is under out_dir
+        assert f"report {out}/val-" in line
+    table = (out / "compare-val.md").read_text()
+    assert f"(evaluations in `{out}`)" in table.splitlines()[0]
+    assert "## Against proportional navigation, scenario by scenario" in table
+    # the module's CLI rewrites the same table from that folder
+    res = run_python("-m", "rlplat.eval.compare", str(trained_run), "--split", "val",
+                     "--eval-dir", str(out))  # fmt: skip
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert res.stdout.strip() == lines[4].strip()
+    assert (out / "compare-val.md").read_text() == table
+
+
 def test_last_checkpoint_and_a_path(trained_run):
     last = evaluate_run(trained_run, ckpt="last", split="val", plots=False, trajectories=0)
     assert last.out_dir == trained_run / "eval" / "val-last"

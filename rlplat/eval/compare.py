@@ -2,7 +2,8 @@
 
 ``python -m rlplat.eval.compare RUN_DIR [--split test]`` reads every
 ``RUN_DIR/eval/<split>-*/summary.json`` (written by ``evaluate.py``) and writes
-``RUN_DIR/eval/compare-<split>.md``, ``.csv`` and ``.png``.
+``RUN_DIR/eval/compare-<split>.md``, ``.csv`` and ``.png``; ``--eval-dir DIR`` reads and
+writes ``DIR`` in place of ``RUN_DIR/eval`` (``evaluate.py compare=true out_dir=DIR``).
 """
 
 from __future__ import annotations
@@ -50,8 +51,11 @@ def _order(summary: dict[str, Any]) -> tuple[int, int, str]:
     return (1, list(POLICIES).index(summary["policy"]), summary["name"])
 
 
-def load_summaries(run_dir: str | Path, split: str = "test") -> list[dict[str, Any]]:
-    """The evaluation summaries of ``split`` in a run: learned policies first, then baselines.
+def load_summaries(
+    run_dir: str | Path, split: str = "test", eval_dir: str | Path | None = None
+) -> list[dict[str, Any]]:
+    """The evaluation summaries of ``split`` in a run's ``eval_dir`` (default
+    ``<run_dir>/eval``): learned policies first, then baselines.
 
     Refuses summaries flown on different scenario sets: their numbers do not compare.
     """
@@ -60,10 +64,11 @@ def load_summaries(run_dir: str | Path, split: str = "test") -> list[dict[str, A
         raise ConfigError(f"split: unknown '{split}'; valid: {', '.join(SPLITS)}")
     if not run_dir.is_dir():
         raise ConfigError(f"run_dir: no run directory at {run_dir}")
-    paths = sorted((run_dir / "eval").glob(f"{split}-*/summary.json"))
+    where = Path(eval_dir or run_dir / "eval")
+    paths = sorted(where.glob(f"{split}-*/summary.json"))
     if not paths:
         raise ConfigError(
-            f"compare: no evaluation of the {split} split in {run_dir / 'eval'}; "
+            f"compare: no evaluation of the {split} split in {where}; "
             f"run evaluate.py run_dir={run_dir} split={split} first"
         )
     summaries = sorted((json.loads(p.read_text()) for p in paths), key=_order)
@@ -170,14 +175,15 @@ def _bound_table(
     return "\n".join(lines)
 
 
-def compare(run_dir: str | Path, split: str = "test") -> str:
-    """Write ``eval/compare-<split>.{md,csv,png}`` for a run; returns the Markdown table."""
+def compare(run_dir: str | Path, split: str = "test", eval_dir: str | Path | None = None) -> str:
+    """Write ``compare-<split>.{md,csv,png}`` beside a run's evaluations, in ``eval_dir``
+    (default ``<run_dir>/eval``); returns the Markdown table."""
     run_dir = Path(run_dir)
-    summaries = load_summaries(run_dir, split)
+    out = Path(eval_dir or run_dir / "eval")
+    summaries = load_summaries(run_dir, split, out)
     rows = table_rows(summaries)
     table = markdown_table(rows)
-    paired = _paired_section(run_dir, summaries, split)
-    out = run_dir / "eval"
+    paired = _paired_section(out, summaries, split)
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=COLUMNS, lineterminator="\n")
     writer.writeheader()
@@ -186,7 +192,9 @@ def compare(run_dir: str | Path, split: str = "test") -> str:
     plot_comparison(summaries, out / f"compare-{split}.png")
     s = summaries[0]
     header = (
-        f"# Policies on the {split} split of `{run_dir}`\n\n"
+        f"# Policies on the {split} split of `{run_dir}`"
+        + (f" (evaluations in `{out}`)" if eval_dir is not None else "")
+        + "\n\n"
         f"{s['scenarios']} scenarios, digest `{s['scenario_digest'][:12]}`; every policy flies "
         "each scenario once, deterministically.\n\n"
     )
@@ -215,14 +223,14 @@ def compare(run_dir: str | Path, split: str = "test") -> str:
     return table
 
 
-def _paired_section(run_dir: Path, summaries: list[dict[str, Any]], split: str) -> str:
+def _paired_section(out: Path, summaries: list[dict[str, Any]], split: str) -> str:
     """Every other policy against proportional navigation scenario by scenario
-    (:func:`rlplat.eval.pool.paired_rows`), where the run holds its evaluation; else ""."""
+    (:func:`rlplat.eval.pool.paired_rows`), where ``out`` holds its evaluation; else ""."""
     law = "proportional_navigation"
     if len(summaries) < 2 or not any(s.get("policy") == law for s in summaries):
         return ""
     try:
-        rows = paired_rows([run_dir], law, split)
+        rows = paired_rows(sorted(p.parent for p in out.glob(f"{split}-*/summary.json")), law, split)
     except ConfigError as err:  # e.g. the run also holds evaluations on other dynamics
         log.info("compare: no scenario-by-scenario section (%s)", err)
         return ""
@@ -242,8 +250,12 @@ def main(argv: list[str] | None = None) -> None:
     )
     parser.add_argument("run_dir", help="a training run directory with eval/<split>-*/ results")
     parser.add_argument("--split", default="test", help="test | val | train (default: test)")
+    parser.add_argument(
+        "--eval-dir", default=None,
+        help="the evaluations' folder (evaluate.py compare=true out_dir=...; default RUN_DIR/eval)",
+    )  # fmt: skip
     args = parser.parse_args(argv)
-    print(compare(args.run_dir, args.split))
+    print(compare(args.run_dir, args.split, args.eval_dir))
 
 
 if __name__ == "__main__":

@@ -237,6 +237,7 @@ def evaluate_run(
     dynamics: Mapping[str, Any] | None = None,
     ensemble: Sequence[str | Path] = (),
     lone_in_team: bool = False,
+    eval_dir: str | Path | None = None,
 ) -> Evaluation:
     """Replay every scenario of ``split`` once, deterministically, with the run's policy.
 
@@ -250,7 +251,7 @@ def evaluate_run(
         scenarios_dir: evaluate on this set instead of the run's.
         attackers: fly only the first this many attackers of each scenario (None: the run's
             ``env.attackers``), e.g. a 1-vs-1 run on the defenders of a 2-vs-1 set.
-        out_dir: where to write; default ``<run_dir>/eval/<split>-<ckpt or policy>``.
+        out_dir: where to write; default ``<eval_dir>/<split>-<ckpt or policy>``.
         device: torch device of env and policy.
         trajectories: episodes drawn in 3D (half the fastest captures, half the worst misses).
         speed_ratio_bins: inner bin edges of attacker / defender maximum speed.
@@ -267,6 +268,8 @@ def evaluate_run(
             role flies every drone of a larger team of that role, each on its own
             observation without its team-mates (``lone_features``): a team that does not
             coordinate. A scripted policy flies the team as always.
+        eval_dir: the folder of the run's evaluations that the default ``out_dir`` is in
+            (default ``<run_dir>/eval``), e.g. one per scenario set that the run is flown on.
     """
     # Everything is checked before any work starts.
     run_dir = Path(run_dir)
@@ -298,7 +301,7 @@ def evaluate_run(
         name = f"{name}-ensemble{len(members) + 1}"
     if out_dir is None:
         suffix = f"-{cfg.dynamics.name}" if swapped else ""
-        out_dir = run_dir / "eval" / f"{split}-{name}{suffix}"
+        out_dir = Path(eval_dir or run_dir / "eval") / f"{split}-{name}{suffix}"
     out_dir = Path(out_dir)
     summary_path = run_dir / "summary.json"
     run_summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
@@ -491,7 +494,9 @@ def split_ceiling(cfg, env_cfg, env: PursuitEnv, scenarios, split: str, device):
 def evaluate_from_config(cfg: DictConfig) -> list[str]:
     """What ``evaluate.py`` does with its config (conf/evaluate.yaml); returns the lines to
     print. With ``compare`` it also flies every baseline for the run's learner on the same
-    split and writes ``eval/compare-<split>.md``."""
+    split and writes ``compare-<split>.md`` beside their evaluations: in the run's ``eval/``,
+    or in ``out_dir`` when given (a run flown on another scenario set or as a team needs no
+    copy of the run)."""
     validate_evaluate_config(cfg)
     kwargs = {
         "ckpt": str(cfg.ckpt),
@@ -516,9 +521,8 @@ def evaluate_from_config(cfg: DictConfig) -> list[str]:
     lines = []
     for policy in policies:
         members = list(cfg.ensemble) if policy == cfg.policy else []
-        ev = evaluate_run(
-            cfg.run_dir, policy=policy, out_dir=cfg.out_dir, ensemble=members, **kwargs
-        )
+        where = {"eval_dir": cfg.out_dir} if cfg.compare else {"out_dir": cfg.out_dir}
+        ev = evaluate_run(cfg.run_dir, policy=policy, ensemble=members, **where, **kwargs)
         s = ev.summary
         low, high = s["capture_rate_ci95"]
         differ = (
@@ -532,5 +536,5 @@ def evaluate_from_config(cfg: DictConfig) -> list[str]:
             f"{s['scenarios']} {s['split']} scenarios{differ}, report {ev.out_dir / 'report.md'}"
         )
     if cfg.compare:
-        lines.append(compare(cfg.run_dir, cfg.split))
+        lines.append(compare(cfg.run_dir, cfg.split, eval_dir=cfg.out_dir))
     return lines

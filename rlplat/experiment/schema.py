@@ -439,11 +439,6 @@ def _check_airsim(dynamics: Mapping[str, Any], env: Mapping[str, Any], n: int, f
 
 
 def _check_evaluate_fields(c: Mapping[str, Any]) -> None:
-    if c["compare"] and c["out_dir"] is not None:
-        raise ConfigError(
-            f"out_dir: must be null with compare=true (each policy has its own), "
-            f"got {show(c['out_dir'])}"
-        )
     if c["policy"] in SCRIPTED and c["ckpt"] != "best":
         raise ConfigError(
             f"ckpt: {show(c['ckpt'])} is for policy=checkpoint, onnx or c, got policy={c['policy']}"
