@@ -210,7 +210,7 @@ def describe_lines(src: Source, env, features: list[dict[str, Any]]) -> list[str
     lines = [f"Network: {who}; source checkpoint sha256:", f"  {src.sha256}"]
     if env.group is not None:
         lines.append(f"A team of {env.team_size} drones shares it: one call per drone and step.")
-    lines += ["", "obs[i]: feature, unit (the network divides it by scale):"]
+    lines += ["", "obs[i]: feature, unit (the network multiplies it by float32(1 / scale)):"]
     lines += [
         f"  [{i}] {f['name']}, {f['unit']} (scale {f['scale']:g})" for i, f in enumerate(features)
     ]
