@@ -263,7 +263,9 @@ def test_compare_mode_flies_every_baseline_in_one_command(trained_run):
     assert not list((trained_run / "eval" / "val-best").glob("*.png"))  # plots=false
 
 
-def test_compare_mode_writes_under_out_dir_and_leaves_the_run_alone(trained_run, tmp_path, run_python):
+def test_compare_mode_writes_under_out_dir_and_leaves_the_run_alone(
+    trained_run, tmp_path, run_python
+):
     before = sorted(p.relative_to(trained_run) for p in trained_run.rglob("*"))
     out = tmp_path / "flown-elsewhere"
     cfg = compose_config(

@@ -2,8 +2,9 @@
 model in ONNX Runtime, their timing, and both as policies the evaluator flies.
 
 - :func:`find_compiler`, :func:`build_library`: ``policy.c`` built with the system C compiler
-  (``cc -O2 -std=c99 -ffp-contract=off -shared -fPIC ... -lm``) into a shared library, loaded as a :class:`CPolicy`
-  that calls ``rlplat_policy`` once per observation row, the way firmware calls it.
+  (``cc -O2 -std=c99 -ffp-contract=off -shared -fPIC ... -lm``) into a shared library, loaded
+  as a :class:`CPolicy` that calls ``rlplat_policy`` once per observation row, the way
+  firmware calls it.
 - :class:`OnnxPolicy`: an ONNX Runtime session on one CPU thread, batched.
 - :func:`time_c`: a generated C ``main`` that times single calls with ``clock_gettime``
   after a warm-up (ctypes would add more than the call costs); :func:`time_onnx` times

@@ -230,7 +230,8 @@ def _paired_section(out: Path, summaries: list[dict[str, Any]], split: str) -> s
     if len(summaries) < 2 or not any(s.get("policy") == law for s in summaries):
         return ""
     try:
-        rows = paired_rows(sorted(p.parent for p in out.glob(f"{split}-*/summary.json")), law, split)
+        flown = sorted(p.parent for p in out.glob(f"{split}-*/summary.json"))
+        rows = paired_rows(flown, law, split)
     except ConfigError as err:  # e.g. the run also holds evaluations on other dynamics
         log.info("compare: no scenario-by-scenario section (%s)", err)
         return ""
