@@ -432,7 +432,8 @@ def test_evaluate_yaml_is_evaluate_run_with_its_defaults():
     yaml = OmegaConf.load(ROOT / "conf" / "evaluate.yaml")
     params = inspect.signature(evaluate_run).parameters
     keys = set(yaml) - {"defaults", "hydra", "compare", "threads"}  # entry-point options
-    assert keys == set(params) - {"dynamics"}
+    # eval_dir is out_dir's meaning with compare=true (the folder of every policy's evaluation)
+    assert keys == set(params) - {"dynamics", "eval_dir"}
     assert {"dynamics": None} in yaml.defaults  # a config group, chosen on the command line
     for key in keys - {"run_dir"}:
         default = params[key].default

@@ -346,11 +346,11 @@ def test_compare_sets_policies_against_the_law_only_where_one_game_was_flown(tmp
     def summaries():
         return [json.loads(p.read_text()) for p in sorted(run.glob("eval/test-*/summary.json"))]
 
-    section = _paired_section(run, summaries(), "test")
+    section = _paired_section(run / "eval", summaries(), "test")
     assert "## Against proportional navigation" in section
     assert "| attacker_v8 (best) | 1 | 5 | +0.200 [" in section and "| 2 / 1 |" in section
     # The same run flown on other dynamics too (a dynamics swap's evaluation, same scenarios):
     # no pairing across two games, and no error either.
     _headroom_evaluation(tmp_path, "s0", "best-airsim", "checkpoint", [1, 1, 0, 0, 1],
                          dynamics="airsim")  # fmt: skip
-    assert _paired_section(run, summaries(), "test") == ""
+    assert _paired_section(run / "eval", summaries(), "test") == ""
