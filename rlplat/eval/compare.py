@@ -51,6 +51,11 @@ def _order(summary: dict[str, Any]) -> tuple[int, int, str]:
     return (1, list(POLICIES).index(summary["policy"]), summary["name"])
 
 
+def evaluations_dir(run_dir: str | Path, eval_dir: str | Path | None = None) -> Path:
+    """The folder a run's evaluations are in: ``eval_dir``, by default ``<run_dir>/eval``."""
+    return Path(eval_dir or Path(run_dir) / "eval")
+
+
 def load_summaries(
     run_dir: str | Path, split: str = "test", eval_dir: str | Path | None = None
 ) -> list[dict[str, Any]]:
@@ -64,7 +69,7 @@ def load_summaries(
         raise ConfigError(f"split: unknown '{split}'; valid: {', '.join(SPLITS)}")
     if not run_dir.is_dir():
         raise ConfigError(f"run_dir: no run directory at {run_dir}")
-    where = Path(eval_dir or run_dir / "eval")
+    where = evaluations_dir(run_dir, eval_dir)
     paths = sorted(where.glob(f"{split}-*/summary.json"))
     if not paths:
         raise ConfigError(
@@ -179,7 +184,7 @@ def compare(run_dir: str | Path, split: str = "test", eval_dir: str | Path | Non
     """Write ``compare-<split>.{md,csv,png}`` beside a run's evaluations, in ``eval_dir``
     (default ``<run_dir>/eval``); returns the Markdown table."""
     run_dir = Path(run_dir)
-    out = Path(eval_dir or run_dir / "eval")
+    out = evaluations_dir(run_dir, eval_dir)
     summaries = load_summaries(run_dir, split, out)
     rows = table_rows(summaries)
     table = markdown_table(rows)

@@ -37,7 +37,7 @@ from rlplat.envs.dynamics import DYNAMICS
 from rlplat.envs.pursuit import ROLES, PursuitEnv
 from rlplat.errors import ConfigError
 from rlplat.eval.ceiling import intercept_ceiling, route_flown
-from rlplat.eval.compare import compare
+from rlplat.eval.compare import compare, evaluations_dir
 from rlplat.eval.episodes import EpisodeResults, evaluate
 from rlplat.eval.report import write_report
 from rlplat.eval.tables import differing_outcomes, episode_rows, summarize, write_csv
@@ -301,7 +301,7 @@ def evaluate_run(
         name = f"{name}-ensemble{len(members) + 1}"
     if out_dir is None:
         suffix = f"-{cfg.dynamics.name}" if swapped else ""
-        out_dir = Path(eval_dir or run_dir / "eval") / f"{split}-{name}{suffix}"
+        out_dir = evaluations_dir(run_dir, eval_dir) / f"{split}-{name}{suffix}"
     out_dir = Path(out_dir)
     summary_path = run_dir / "summary.json"
     run_summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
