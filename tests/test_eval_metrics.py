@@ -253,6 +253,7 @@ def test_headroom_bins_a_team_by_its_fastest_attacker_when_asked(tmp_path, capsy
 
 
 def test_against_sets_each_policy_against_the_reference_scenario_by_scenario(tmp_path, capsys):
+    from rlplat.errors import ConfigError
     from rlplat.eval.pool import main, paired_markdown, paired_rows
 
     _headroom_evaluation(tmp_path, "s0", "best", "checkpoint", [1, 1, 0, 0, 1],
@@ -271,11 +272,29 @@ def test_against_sets_each_policy_against_the_reference_scenario_by_scenario(tmp
     assert (row["gained"], row["lost"]) == (2, 1)
     # Only s1 was captured by both: the learner in 11 s on average, the law in 14 s.
     assert row["both_captured"] == 1 and row["time_delta_s"] == pytest.approx(-3.0)
+    # Each run against the law: s0 gains 1 + 0 - 1 + 0 + 1 of 5, s1 0 + 0 - 1 + 0 + 1. Their
+    # mean is the pooled gain; with two runs the t interval has 1 degree of freedom (12.706).
+    assert row["run_gains"] == pytest.approx([0.2, 0.0]) and row["runs_sd"] == pytest.approx(
+        0.02**0.5
+    )
+    half = 12.7062 * 0.02**0.5 / 2**0.5
+    assert row["runs_ci95"] == pytest.approx((0.1 - half, 0.1 + half), abs=1e-4)
     main([str(tmp_path / "s0"), str(tmp_path / "s1"), "--against", "proportional_navigation"])
-    assert "| attacker_v8 (best) | 2 | 5 | +0.100 [" in capsys.readouterr().out
-    one = {**row, "scenarios": 1, "gain": 1.0, "ci95": (float("nan"),) * 2, "gained": 1,
-           "lost": 0, "both_captured": 0, "time_delta_s": None}  # fmt: skip
+    out = capsys.readouterr().out
+    assert "| attacker_v8 (best) | 2 | 5 | +0.100 [" in out
+    assert "| +0.200, +0.000; +0.100 [-1.171, +1.371] |" in out
+    one = {k: v for k, v in row.items() if not k.startswith("runs_")}
+    one |= {"scenarios": 1, "gain": 1.0, "ci95": (float("nan"),) * 2, "gained": 1, "lost": 0,
+            "both_captured": 0, "time_delta_s": None, "run_gains": [1.0]}  # fmt: skip
+    # One run: no column of runs (compare's table of one run has none).
     assert paired_markdown([one]).endswith("| attacker_v8 (best) | 2 | 1 | +1.000 | 1 / 0 | – |")
+    # A run that flew other scenarios than the reference is refused, naming it.
+    csv_path = tmp_path / "s1" / "eval" / "test-best" / "episodes.csv"
+    lines = csv_path.read_text().splitlines()
+    csv_path.write_text("\n".join(lines[:-1]) + "\n")
+    _headroom_evaluation(tmp_path, "s2", "best", "checkpoint", [0, 1, 0, 0, 1])
+    with pytest.raises(ConfigError, match="run 2 of attacker_v8 \\(best\\) flew 4 scenarios"):
+        paired_rows([tmp_path / r for r in ("s0", "s1", "s2")], "proportional_navigation")
 
 
 def test_pool_reads_evaluation_directories_as_it_reads_runs(tmp_path, capsys):

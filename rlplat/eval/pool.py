@@ -22,7 +22,11 @@ With ``--against POLICY`` (e.g. ``proportional_navigation``) a third table sets 
 policy against that one scenario by scenario: per scenario each policy's capture fraction over
 its runs, the gain as the mean difference over the scenarios with its 95 % interval (normal,
 over scenarios: what another draw of as many scenarios would show), the scenarios gained and
-lost, and the difference of the mean time to capture on the scenarios both captured.
+lost, and the difference of the mean time to capture on the scenarios both captured. Each run
+of a learned policy is also set against the reference alone: the gain per run, and over the
+runs their mean with a 95 % Student t interval: where another seed's run would land on these
+same scenarios, which the interval over scenarios does not say (a goal such as "the reference
++ 0.03" met by three runs may still be one that a new seed misses).
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy import stats
 
 from rlplat.agents.policies import POLICIES
 from rlplat.cli import exit_on_error
@@ -44,7 +49,9 @@ from rlplat.eval.summaries import is_learned, num, policy_label
 from rlplat.scenarios import SPLITS
 
 #: What :func:`_read` returns: episodes and run count per policy, and every summary read.
+#: Each episode row carries ``RUN``: the index of its evaluation among its policy's runs.
 Evaluations = tuple[dict[str, list[dict[str, str]]], dict[str, int], list[dict[str, Any]]]
+RUN = "_run"  # not a column of episodes.csv
 
 
 def pooled_rows(run_dirs: list[Path], split: str = "test") -> list[dict[str, Any]]:
@@ -78,9 +85,9 @@ def _read(run_dirs: list[Path], split: str) -> Evaluations:
             summaries.append(summary)
             label = policy_label(summary)
             learned[label] = is_learned(summary)
-            runs[label] += 1
             with open(path.parent / "episodes.csv", newline="") as f:
-                episodes[label].extend(csv.DictReader(f))
+                episodes[label].extend({**r, RUN: runs[label]} for r in csv.DictReader(f))
+            runs[label] += 1
     order = sorted(episodes, key=lambda k: (not learned[k], list(episodes).index(k)))
     return {label: episodes[label] for label in order}, runs, summaries
 
@@ -228,7 +235,12 @@ def paired_rows(run_dirs: list[Path], against: str, split: str = "test") -> list
     ``ci95`` and ``sd`` (of the per-scenario difference), ``gained`` and ``lost`` (scenarios
     where the policy's fraction is above or below the reference's), and ``time_delta_s`` (the
     mean over the scenarios both captured at least once of the difference of their mean times
-    to capture; None if there are none) with ``both_captured``.
+    to capture; None if there are none) with ``both_captured``; ``run_gains``, each run's own
+    gain over the reference on the same scenarios (a learned policy's; a scripted one's runs fly
+    the same episodes: empty), and with two runs or more ``runs_sd`` and
+    ``runs_ci95``, their standard deviation and the Student t interval of their mean (the
+    expected gain of another seed's run; ``gain`` is that mean when every run flew every
+    scenario once).
 
     The evaluations must fly attackers (not a defender learner's) on one scenario set, team
     size and dynamics, every policy all of the reference's scenarios."""
@@ -245,6 +257,7 @@ def _paired(read: Evaluations, against: str) -> list[dict[str, Any]]:
     _attackers_only(summaries, "--against", "the gain is an attacker's capture rate")
     _one_set(summaries, "--against")
     per = {label: _per_scenario(rows) for label, rows in episodes.items()}
+    learned = {policy_label(s) for s in summaries if is_learned(s)}
     reference = per[against]
     sids = sorted(reference)
     out = []
@@ -260,6 +273,9 @@ def _paired(read: Evaluations, against: str) -> list[dict[str, Any]]:
         sd = float(d.std(ddof=1)) if d.size > 1 else float("nan")
         half = 1.96 * sd / np.sqrt(d.size)
         both = [s for s in sids if outcome[s][1] is not None and reference[s][1] is not None]
+        run_gains = (
+            _run_gains(episodes[label], reference, label, against) if label in learned else []
+        )
         out.append({
             "policy": label,
             "runs": runs[label],
@@ -274,8 +290,44 @@ def _paired(read: Evaluations, against: str) -> list[dict[str, Any]]:
             "time_delta_s": (
                 float(np.mean([outcome[s][1] - reference[s][1] for s in both])) if both else None
             ),
+            "run_gains": run_gains,
+            **_over_runs(run_gains),
         })  # fmt: skip
     return out
+
+
+def _run_gains(
+    rows: list[dict[str, Any]],
+    reference: dict[str, tuple[float, float | None]],
+    label: str,
+    against: str,
+) -> list[float]:
+    """Each run's gain over the reference: the mean over the reference's scenarios of the run's
+    capture fraction minus the reference's."""
+    by_run: dict[int, list[dict[str, Any]]] = defaultdict(list)
+    for r in rows:
+        by_run[r[RUN]].append(r)
+    gains = []
+    for run, run_rows in sorted(by_run.items()):
+        outcome = _per_scenario(run_rows)
+        if set(outcome) != set(reference):
+            raise ConfigError(
+                f"pool --against: run {run + 1} of {label} flew {len(outcome)} scenarios, "
+                f"{against} {len(reference)}, not the same ones; evaluate each run on one split"
+            )
+        gains.append(float(np.mean([outcome[s][0] - reference[s][0] for s in reference])))
+    return gains
+
+
+def _over_runs(gains: list[float]) -> dict[str, Any]:
+    """The spread of the runs' gains and the 95 % Student t interval of their mean (two runs or
+    more)."""
+    if len(gains) < 2:
+        return {}
+    g = np.asarray(gains)
+    sd = float(g.std(ddof=1))
+    half = float(stats.t.ppf(0.975, g.size - 1)) * sd / np.sqrt(g.size)
+    return {"runs_sd": sd, "runs_ci95": (float(g.mean() - half), float(g.mean() + half))}
 
 
 def _per_scenario(rows: list[dict[str, str]]) -> dict[str, tuple[float, float | None]]:
@@ -295,21 +347,29 @@ def _per_scenario(rows: list[dict[str, str]]) -> dict[str, tuple[float, float | 
 
 
 def paired_markdown(rows: list[dict[str, Any]]) -> str:
-    """The paired comparison as Markdown."""
+    """The paired comparison as Markdown; with a learned policy of two runs or more, a column of
+    the gain per run and their mean with its interval over runs."""
     against = rows[0]["against"] if rows else "the reference"
+    spread = any(len(r["run_gains"]) > 1 for r in rows)
     lines = [
         f"| policy | runs | scenarios | gain over {against} [95 % CI] | scenarios gained / lost "
-        "| time to capture, where both capture [s] |",
-        "|---|---|---|---|---|---|",
+        "| time to capture, where both capture [s] |"
+        + (" gain per run; their mean [95 % CI over runs] |" if spread else ""),
+        "|---|---|---|---|---|---|" + ("---|" if spread else ""),
     ]
     for r in rows:
         low, high = r["ci95"]
         interval = f" [{low:+.3f}, {high:+.3f}]" if np.isfinite(low) else ""  # one scenario: none
         delta = r["time_delta_s"]
         time = f"{delta:+.1f} ({r['both_captured']} scenarios)" if delta is not None else "–"
+        per_run = ", ".join(f"{g:+.3f}" for g in r["run_gains"]) or "–"
+        if "runs_ci95" in r:
+            low, high = r["runs_ci95"]
+            mean = float(np.mean(r["run_gains"]))
+            per_run += f"; {mean:+.3f} [{low:+.3f}, {high:+.3f}]"
         lines.append(
             f"| {r['policy']} | {r['runs']} | {r['scenarios']} | {r['gain']:+.3f}{interval} "
-            f"| {r['gained']} / {r['lost']} | {time} |"
+            f"| {r['gained']} / {r['lost']} | {time} |" + (f" {per_run} |" if spread else "")
         )
     return "\n".join(lines)
 
