@@ -49,7 +49,7 @@ from rlplat.eval.summaries import is_learned, num, policy_label
 from rlplat.scenarios import SPLITS
 
 #: What :func:`_read` returns: episodes and run count per policy, and every summary read.
-#: Each episode row carries ``RUN``: the index of its evaluation among its policy's runs.
+#: Each episode row carries ``RUN``: the folder of the evaluation it comes from.
 Evaluations = tuple[dict[str, list[dict[str, str]]], dict[str, int], list[dict[str, Any]]]
 RUN = "_run"  # not a column of episodes.csv
 
@@ -86,7 +86,7 @@ def _read(run_dirs: list[Path], split: str) -> Evaluations:
             label = policy_label(summary)
             learned[label] = is_learned(summary)
             with open(path.parent / "episodes.csv", newline="") as f:
-                episodes[label].extend({**r, RUN: runs[label]} for r in csv.DictReader(f))
+                episodes[label].extend({**r, RUN: str(path.parent)} for r in csv.DictReader(f))
             runs[label] += 1
     order = sorted(episodes, key=lambda k: (not learned[k], list(episodes).index(k)))
     return {label: episodes[label] for label in order}, runs, summaries
@@ -304,15 +304,15 @@ def _run_gains(
 ) -> list[float]:
     """Each run's gain over the reference: the mean over the reference's scenarios of the run's
     capture fraction minus the reference's."""
-    by_run: dict[int, list[dict[str, Any]]] = defaultdict(list)
+    by_run: dict[str, list[dict[str, Any]]] = defaultdict(list)  # in the order read
     for r in rows:
         by_run[r[RUN]].append(r)
     gains = []
-    for run, run_rows in sorted(by_run.items()):
+    for folder, run_rows in by_run.items():
         outcome = _per_scenario(run_rows)
         if set(outcome) != set(reference):
             raise ConfigError(
-                f"pool --against: run {run + 1} of {label} flew {len(outcome)} scenarios, "
+                f"pool --against: {label} in {folder} flew {len(outcome)} scenarios, "
                 f"{against} {len(reference)}, not the same ones; evaluate each run on one split"
             )
         gains.append(float(np.mean([outcome[s][0] - reference[s][0] for s in reference])))
