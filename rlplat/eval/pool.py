@@ -25,8 +25,8 @@ over scenarios: what another draw of as many scenarios would show), the scenario
 lost, and the difference of the mean time to capture on the scenarios both captured. Each run
 of a learned policy is also set against the reference alone: the gain per run, and over the
 runs their mean with a 95 % Student t interval: where another seed's run would land on these
-same scenarios, which the interval over scenarios does not say (a goal such as "the reference
-+ 0.03" met by three runs may still be one that a new seed misses).
+same scenarios, which the interval over scenarios does not say (a margin over the reference
+that three runs meet pooled may still be one that a new seed misses).
 """
 
 from __future__ import annotations
