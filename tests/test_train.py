@@ -1,5 +1,6 @@
 import csv
 import json
+import logging
 
 import pytest
 import torch
@@ -247,6 +248,36 @@ def test_same_seed_same_training(scenarios, tmp_path, tiny_run):
     sb = load_checkpoint(tmp_path / "b" / "checkpoints" / "last.pt")["actor"]
     assert all(torch.equal(sa[k], sb[k]) for k in sa)
     assert a["test_mean_return"] == b["test_mean_return"]
+
+
+def test_a_run_stopped_on_the_clock_says_so(scenarios, tmp_path, tiny_run, caplog):
+    with caplog.at_level(logging.WARNING, logger="rlplat.experiment.training"):
+        on_frames = tiny_run(scenarios, tmp_path / "frames")
+    assert on_frames["frames"] >= 256 and "on the clock" not in caplog.text
+    with caplog.at_level(logging.WARNING, logger="rlplat.experiment.training"):
+        summary = tiny_run(
+            scenarios, tmp_path / "clock", "train.total_frames=100000", "train.max_minutes=1e-6"
+        )
+    assert summary["frames"] < 100000
+    assert f"reached at {summary['frames']} of train.total_frames=100000" in caplog.text
+    assert "stopped on the clock" in caplog.text
+
+
+def test_progress_counts_the_budget_nearest_its_end():
+    from omegaconf import OmegaConf
+
+    from rlplat.experiment.training import Progress, RunState
+
+    node = OmegaConf.create({"total_frames": 1000, "max_minutes": 10, "progress": False})
+    resumed = RunState(frames=250, wall_time_s=30.0)  # a quarter of the frames, 5 % of the time
+    bar = Progress(node, resumed, start=0.0)
+    assert bar.bar.n == 25
+    assert bar._percent(frames=300, seconds=420.0) == 70  # the clock is further along
+    assert bar._percent(frames=2000, seconds=0.0) == 100
+    frames_only = Progress(OmegaConf.merge(node, {"max_minutes": None}), resumed, start=0.0)
+    assert frames_only._percent(frames=300, seconds=1e6) == 30
+    bar.close()
+    frames_only.close()
 
 
 def test_correlated_noise_trains_reproducibly_and_explores_otherwise(scenarios, tmp_path, tiny_run):

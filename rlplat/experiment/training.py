@@ -251,6 +251,12 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
                 save_checkpoint(run.ckpt_dir / "last.pt", checkpoint(run, state))
             progress.update(state, last_val)
             if out_of_budget:
+                if state.frames < cfg.train.total_frames:
+                    log.warning(
+                        "train.max_minutes=%s reached at %d of train.total_frames=%d frames: "
+                        "the run stopped on the clock, so a re-run of this seed may stop elsewhere",
+                        cfg.train.max_minutes, state.frames, cfg.train.total_frames,
+                    )  # fmt: skip
                 break
     finally:
         progress.close()
@@ -725,28 +731,31 @@ def episode_metrics(batch, terms: list[str]) -> dict[str, float]:
 
 
 class Progress:
-    """The progress bar: against the time budget when ``train.max_minutes`` is set (a run
-    ends at the first budget reached, which on a CPU is the time), else against the frames."""
+    """The progress bar, in percent of the budget: of ``train.total_frames``, or of
+    ``train.max_minutes`` while the clock is further along (a run ends at the first budget
+    reached)."""
 
     def __init__(self, node: DictConfig, state: RunState, start: float) -> None:
-        self.start, self.by_time = start, node.max_minutes is not None
-        total, initial = (
-            (round(60.0 * node.max_minutes), round(state.wall_time_s))
-            if self.by_time
-            else (node.total_frames, state.frames)
-        )
+        self.start, self.frames = start, node.total_frames
+        self.seconds = None if node.max_minutes is None else 60.0 * node.max_minutes
         self.bar = tqdm(
-            total=total,
-            initial=min(initial, total),
-            unit="s" if self.by_time else "frame",
-            unit_scale=not self.by_time,
+            total=100,
+            initial=self._percent(state.frames, state.wall_time_s),
+            unit="%",
+            bar_format="{l_bar}{bar}| {elapsed}<{remaining}{postfix}",
             disable=not node.progress,
             dynamic_ncols=True,
         )
 
+    def _percent(self, frames: int, seconds: float) -> int:
+        done = frames / self.frames
+        if self.seconds is not None:
+            done = max(done, seconds / self.seconds)
+        return min(100, int(100 * done))
+
     def update(self, state: RunState, last_val: float) -> None:
-        done = round(time.perf_counter() - self.start) if self.by_time else state.frames
-        self.bar.update(max(0, min(done, self.bar.total) - self.bar.n))
+        done = self._percent(state.frames, time.perf_counter() - self.start)
+        self.bar.update(max(0, done - self.bar.n))
         self.bar.set_postfix(
             {"frames": f"{state.frames:,}", "val": f"{last_val:.2f}"}, refresh=False
         )
