@@ -185,7 +185,7 @@ def sb3_until(cfg, scenarios, threshold: float, cap_s: float, eval_every: int) -
 def rlplat_until(overrides: list[str], minutes: float) -> dict:
     """The default training run; time to threshold from its validation log."""
     cfg = compose_config("train", ["train.progress=false", f"train.max_minutes={minutes}",
-                                   *overrides])  # fmt: skip
+                                   "train.total_frames=1000000000", *overrides])  # fmt: skip
     with tempfile.TemporaryDirectory() as tmp:
         summary = train(cfg, run_dir=tmp)
         scalars = Path(tmp) / "metrics" / "scalars"

@@ -263,19 +263,26 @@ def test_a_run_stopped_on_the_clock_says_so(scenarios, tmp_path, tiny_run, caplo
     assert "stopped on the clock" in caplog.text
 
 
-def test_progress_counts_the_budget_nearest_its_end():
+def test_progress_counts_the_budget_nearest_its_end(monkeypatch):
+    import time
+
     from omegaconf import OmegaConf
 
+    from rlplat.experiment import training
     from rlplat.experiment.training import Progress, RunState
 
-    node = OmegaConf.create({"total_frames": 1000, "max_minutes": 10, "progress": False})
-    resumed = RunState(frames=250, wall_time_s=30.0)  # a quarter of the frames, 5 % of the time
-    bar = Progress(node, resumed, start=0.0)
-    assert bar.bar.n == 25
-    assert bar._percent(frames=300, seconds=420.0) == 70  # the clock is further along
-    assert bar._percent(frames=2000, seconds=0.0) == 100
-    frames_only = Progress(OmegaConf.merge(node, {"max_minutes": None}), resumed, start=0.0)
-    assert frames_only._percent(frames=300, seconds=1e6) == 30
+    node = OmegaConf.create({"total_frames": 1000, "max_minutes": 10, "progress": True})
+    start = time.perf_counter() - 30.0  # a resumed run: 5 % of its time gone
+    bar = Progress(node, RunState(frames=250, wall_time_s=30.0), start)
+    assert bar.bar.n == 25  # and a quarter of its frames
+    monkeypatch.setattr(training.time, "perf_counter", lambda: start + 420.0)
+    bar.update(RunState(frames=300), last_val=0.5)
+    assert bar.bar.n == 70  # the clock is further along
+    bar.update(RunState(frames=2000), last_val=0.5)
+    assert bar.bar.n == 100
+    frames_only = Progress(OmegaConf.merge(node, {"max_minutes": None}), RunState(), start)
+    frames_only.update(RunState(frames=300), last_val=0.5)
+    assert frames_only.bar.n == 30
     bar.close()
     frames_only.close()
 

@@ -740,7 +740,7 @@ class Progress:
         self.seconds = None if node.max_minutes is None else 60.0 * node.max_minutes
         self.bar = tqdm(
             total=100,
-            initial=self._percent(state.frames, state.wall_time_s),
+            initial=self._percent(state.frames, time.perf_counter() - start),
             unit="%",
             bar_format="{l_bar}{bar}| {elapsed}<{remaining}{postfix}",
             disable=not node.progress,
