@@ -1,9 +1,11 @@
 import csv
 import json
 import logging
+import time
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from rlplat.agents.checkpoint import load_checkpoint, load_policy
 from rlplat.errors import ConfigError
@@ -264,10 +266,6 @@ def test_a_run_stopped_on_the_clock_says_so(scenarios, tmp_path, tiny_run, caplo
 
 
 def test_progress_counts_the_budget_nearest_its_end(monkeypatch):
-    import time
-
-    from omegaconf import OmegaConf
-
     from rlplat.experiment import training
     from rlplat.experiment.training import Progress, RunState
 
