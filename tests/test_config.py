@@ -227,6 +227,8 @@ BAD_TRAIN = [
     (["reward.terms=null"], "reward.terms", "None"),
     (["scenario.attackers=0"], "scenario.attackers", "0"),
     (["scenario.n_train=-5"], "scenario.n_train", "-5"),
+    (["algo.priority_alpha=1.5"], "algo.priority_alpha", "1.5"),
+    (["algo.priority_beta=-0.1"], "algo.priority_beta", "-0.1"),
 ]
 
 
@@ -399,6 +401,8 @@ SAC_PAPER_KEPT = {
     "init_noise": 0.3,
     "noise_correlation": 0.0,
     "buffer_size": 1000000,
+    "priority_alpha": 0.0,  # SB3: uniform draws
+    "priority_beta": 0.4,
     "gamma": 0.99,
     "potential_key": "distance",
     "tau": 0.005,

@@ -29,6 +29,8 @@ from torch._inductor.custom_graph_pass import CustomGraphPass, get_hash_for_file
 from torch.optim.adam import adam
 
 LOSS_NAMES = ("loss_actor", "loss_qvalue", "loss_alpha", "alpha", "entropy")
+#: The entry of an update's result that holds each row's priority (|TD error|, SACLoss's).
+PRIORITY = "td_error"
 
 #: Inductor options of the compiled update. Dynamo's guards already pin every input's shape and
 #: stride while they are evaluated (the warm-up), so the generated code's own checks of each
@@ -189,13 +191,20 @@ class CompiledUpdate:
         self._calls = 0
 
     def __call__(
-        self, keys: tuple, columns: Sequence[torch.Tensor], index: torch.Tensor | None
+        self,
+        keys: tuple,
+        columns: Sequence[torch.Tensor],
+        index: torch.Tensor | None,
+        weights: torch.Tensor | None = None,
     ) -> dict[str, torch.Tensor]:
         """One update on rows ``index`` of ``columns`` (the batch entries ``keys``, in that
-        order; all rows when ``index`` is None); returns the detached losses."""
+        order; all rows when ``index`` is None); returns the detached losses. With ``weights``
+        (prioritized replay's importance weights, one per row) each row's losses are weighted
+        and the result also holds each row's ``td_error`` (the loss's priority); without, the
+        graph is the unweighted update's alone."""
         if keys != self.keys:  # another batch layout: compile for it, with guards
             self.keys, self._calls = keys, 0
-        args = (tuple(columns), index, *self._state)
+        args = (tuple(columns), index, weights, *self._state)
         if self._calls < self.WARMUP_CALLS:
             self._calls += 1
             with _tracing_grad():
@@ -206,21 +215,27 @@ class CompiledUpdate:
             # state tensors).
             with torch.compiler.set_stance("default", skip_guard_eval_unsafe=True):
                 values = self._update(*args)
-        return dict(zip(LOSS_NAMES, values, strict=True))
+        names = LOSS_NAMES if weights is None else (*LOSS_NAMES, PRIORITY)
+        return dict(zip(names, values, strict=True))
 
-    def _update_eager(self, columns, index, params, exp_avgs, exp_avg_sqs, steps, *soft):
-        total, values = self._losses_eager(columns, index)
+    def _update_eager(self, columns, index, weights, params, exp_avgs, exp_avg_sqs, steps, *soft):
+        total, values = self._losses_eager(columns, index, weights)
         grads = torch.autograd.grad(total, params)
         self._step_eager(params, list(grads), exp_avgs, exp_avg_sqs, steps, *soft)
         return values
 
-    def _losses_eager(self, columns, index):
+    def _losses_eager(self, columns, index, weights):
         batch = TensorDict(batch_size=columns[0].shape[:1] if index is None else index.shape)
         for key, column in zip(self.keys, columns, strict=True):
             batch.set(key, column if index is None else column[index])
+        if weights is not None:
+            batch.set(self.loss.tensor_keys.priority_weight, weights)
         losses = self.loss(batch)
         total = losses["loss_actor"] + losses["loss_qvalue"] + losses["loss_alpha"]
-        return total, tuple(losses[k].detach() for k in LOSS_NAMES)
+        values = tuple(losses[k].detach() for k in LOSS_NAMES)
+        if weights is None:
+            return total, values
+        return total, (*values, batch.get(self.loss.tensor_keys.priority).detach())
 
     @torch.no_grad()
     def _step_eager(self, params, grads, exp_avgs, exp_avg_sqs, steps, targets, other, sources):

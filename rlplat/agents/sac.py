@@ -11,15 +11,27 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictModuleBase
 from torch import nn
-from torchrl.data import RandomSampler, ReplayBuffer, TensorSpec, TensorStorage
+from torchrl.data import (
+    LazyTensorStorage,
+    RandomSampler,
+    ReplayBuffer,
+    TensorDictReplayBuffer,
+    TensorSpec,
+    TensorStorage,
+)
 from torchrl.envs.utils import ExplorationType
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import SACLoss, SoftUpdate
 
-from rlplat.agents.compiled import CompiledUpdate, compiled_update_keys
+from rlplat.agents.compiled import PRIORITY, CompiledUpdate, compiled_update_keys
+from rlplat.agents.replay import PrioritySampler
 from rlplat.errors import ConfigError
 
 ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh, "elu": nn.ELU}
+
+#: Added to every |TD error| before the exponent of prioritized replay: a transition the critics
+#: already fit (error ~0) is still drawn now and then, and gets a fresh priority when it is.
+PRIORITY_EPS = 1e-2
 
 
 @dataclass(frozen=True)
@@ -383,38 +395,64 @@ class SACAgent:
     #: Compiled updates run with guard checks for this many calls, then without.
     WARMUP_CALLS = CompiledUpdate.WARMUP_CALLS
 
-    def update(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
-        """One gradient step on every loss, then the soft target update; returns the losses."""
+    def update(
+        self, batch: TensorDictBase, weights: torch.Tensor | None = None
+    ) -> dict[str, torch.Tensor]:
+        """One gradient step on every loss, then the soft target update; returns the losses.
+
+        ``weights`` (one per row of ``batch``) weight each row's losses, as prioritized
+        replay's importance weights do, and each row's priority, SACLoss's ``td_error``, is
+        left in ``batch``; None: every row counts the same.
+        """
         if self._compiled is None:
+            if weights is not None:
+                batch.set(self.loss.tensor_keys.priority_weight, weights)
             out = self._update_eager(batch)
             self.target_updater.step()
             return out
         keys = self._batch_keys(batch)
-        return self._compiled(keys, [batch.get(k) for k in keys], None)
+        out = self._compiled(keys, [batch.get(k) for k in keys], None, weights)
+        if weights is not None:
+            batch.set(self.loss.tensor_keys.priority, out.pop(PRIORITY))
+        return out
 
     def update_from(self, buffer: ReplayBuffer) -> dict[str, torch.Tensor]:
-        """:meth:`update` on a batch drawn from ``buffer`` as ``buffer.sample()`` draws it.
+        """:meth:`update` on a batch drawn from ``buffer`` by its sampler.
 
-        Compiled, the rows are drawn by the buffer's own sampler and gathered from its storage
-        inside the compiled update, so that no batch ``TensorDict`` is built in Python.
+        With a :class:`~rlplat.agents.replay.PrioritySampler` the rows' losses are weighted by
+        its importance weights (TorchRL's losses take the weighted mean, so a batch keeps the
+        scale of a uniform draw) and the rows' priorities are set from the update's
+        ``td_error`` afterwards. Compiled, the rows are gathered from the storage inside the
+        compiled update, so that no batch ``TensorDict`` is built in Python.
         """
-        if self._compiled is None:
-            return self.update(buffer.sample())
-        storage = buffer.storage
+        storage, sampler = buffer.storage, buffer.sampler
+        prioritized = isinstance(sampler, PrioritySampler)
         rows = getattr(storage, "_storage", None)  # a TensorStorage's preallocated tensors
-        if self._columns is None or self._columns[0] is not rows:
-            sampler = buffer.sampler
-            if not (
-                isinstance(storage, TensorStorage)
-                and isinstance(rows, TensorDictBase)
-                and type(sampler) is RandomSampler
-            ):
-                return self.update(buffer.sample())
-            keys = self._batch_keys(rows)
-            self._columns = (rows, sampler, buffer.batch_size, keys, [rows.get(k) for k in keys])
-        _, sampler, batch_size, keys, columns = self._columns
-        index, _ = sampler.sample(storage, batch_size)
-        return self._compiled(keys, columns, index)
+        gathered = (
+            self._compiled is not None
+            and isinstance(storage, TensorStorage)
+            and isinstance(rows, TensorDictBase)
+            and type(sampler) in (RandomSampler, PrioritySampler)
+        )
+        if not prioritized and not gathered:
+            return self.update(buffer.sample())
+        index, info = sampler.sample(storage, buffer.batch_size)
+        device = self.loss.log_alpha.device
+        weights = info["priority_weight"].to(device, torch.float32) if prioritized else None
+        if gathered:
+            if self._columns is None or self._columns[0] is not rows:
+                keys = self._batch_keys(rows)
+                self._columns = (rows, keys, [rows.get(k) for k in keys])
+            _, keys, columns = self._columns
+            out = self._compiled(keys, columns, index.to(columns[0].device), weights)
+            priority = out.pop(PRIORITY, None)
+        else:
+            batch = storage[index]
+            out = self.update(batch, weights)
+            priority = batch.get(self.loss.tensor_keys.priority)
+        if prioritized:
+            sampler.update_priority(index, priority)
+        return out
 
     def load_networks(
         self, entries: Mapping[str, torch.Tensor], flown: Mapping[str, torch.Tensor]
@@ -481,6 +519,23 @@ class SACAgent:
             o.load_state_dict(state["optimizers"][k])
         if self._compiled is not None:
             self._compiled.bind()  # the optimisers' state tensors are new ones
+
+
+def make_replay_buffer(algo: Mapping[str, Any], device="cpu") -> TensorDictReplayBuffer:
+    """The run's replay buffer (``algo.buffer_size`` transitions, batches of
+    ``algo.batch_size``): drawn uniformly, or, with ``algo.priority_alpha`` > 0, in proportion
+    to ``(|TD error| + PRIORITY_EPS) ** priority_alpha``, each row's losses weighted by the
+    importance weight ``(N P(i)) ** -priority_beta``
+    (:class:`~rlplat.agents.replay.PrioritySampler`)."""
+    storage = LazyTensorStorage(algo["buffer_size"], device=device)
+    sampler = (
+        PrioritySampler(
+            algo["buffer_size"], algo["priority_alpha"], algo["priority_beta"], PRIORITY_EPS
+        )
+        if algo.get("priority_alpha", 0.0) > 0
+        else RandomSampler()
+    )
+    return TensorDictReplayBuffer(storage=storage, sampler=sampler, batch_size=algo["batch_size"])
 
 
 def net_spec(obs_scale: Sequence[float], action_dim: int, algo: Mapping[str, Any]) -> NetSpec:

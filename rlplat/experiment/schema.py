@@ -189,6 +189,8 @@ TRAIN_RULES: dict[str, Rule] = {
     "algo.actor_average": Num(ge=0, le=1),
     "algo.failure_weight": Num(gt=0),
     "algo.evader_weight": Num(gt=0),
+    "algo.priority_alpha": Num(ge=0, le=1),
+    "algo.priority_beta": Num(ge=0, le=1),
     "algo.demonstrations": TextList(),
     "algo.demonstration_repeat": COUNT,
     "algo.compile": flag,
@@ -553,6 +555,8 @@ RESUME_FREE: tuple[str, ...] = (
 ADDED_KEYS: dict[str, Any] = {
     "algo.failure_weight": 1.0,
     "algo.evader_weight": 1.0,
+    "algo.priority_alpha": 0.0,
+    "algo.priority_beta": 0.4,
     "action.accel_lead": 0.0,
     "action.accel_reach": 0.0,
     "action.correction_reach": 0.0,

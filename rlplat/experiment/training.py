@@ -23,7 +23,6 @@ from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 from tensordict.nn import NormalParamExtractor
 from torchrl.collectors import Collector
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import RewardSum, TransformedEnv
 from torchrl.envs.utils import ExplorationType
 from tqdm import tqdm
@@ -43,7 +42,7 @@ from rlplat.agents.checkpoint import (
 )
 from rlplat.agents.plays import AimPlay, Plays, load_plays
 from rlplat.agents.policies import REFERENCE, NoisyPolicy, make_scripted_policy
-from rlplat.agents.sac import NetSpec, SACAgent, actor_body, net_spec
+from rlplat.agents.sac import NetSpec, SACAgent, actor_body, make_replay_buffer, net_spec
 from rlplat.agents.transitions import replay_rows
 from rlplat.envs.pursuit import ROLES, PursuitEnv, flown_attackers
 from rlplat.errors import ConfigError
@@ -170,9 +169,8 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
         weight_scenarios(cfg, run, algo, evaders, device)
 
     # Create the replay buffer and the collector
-    buffer = TensorDictReplayBuffer(
-        storage=LazyTensorStorage(algo.buffer_size, device=device), batch_size=algo.batch_size
-    )  # not checkpointed: a resumed run refills it (see the scripted start below)
+    # Not checkpointed: a resumed run refills it (see the scripted start below).
+    buffer = make_replay_buffer(algo, device)
     # A scripted init_policy fills the buffer before the collector starts, also on a resume;
     # otherwise the collector starts with random actions, or with the policy on a resume.
     # A warm start (init_from) flies its own policy from the first frame.
