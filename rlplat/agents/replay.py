@@ -5,8 +5,9 @@ loads only against the torch it was built for; a torch of another minor version 
 sampler unusable. :class:`PrioritySampler` holds the priorities in one CPU tensor, in blocks
 of :data:`BLOCK` with each block's sum kept beside them, and draws with the global torch
 generator (so the run's seed fixes its draws): a draw picks a block by the cumulative sum of
-the block sums, then a row within it, so a batch reads N / BLOCK + batch × BLOCK numbers
-(a sum tree's O(log N) a row, in two levels of wide tensor operations).
+the block sums, then a row within it: a batch reads the N / BLOCK block sums once and BLOCK
+priorities a row, in a few wide tensor operations (a sum tree reads log2 N a row, one level
+at a time).
 """
 
 from __future__ import annotations
