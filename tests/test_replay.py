@@ -37,6 +37,43 @@ def test_draws_follow_the_priorities_and_weights_undo_them():
     assert torch.equal(sampler.sample(buffer.storage, 60_000)[0], index)
 
 
+def test_draws_span_blocks_skip_unwritten_rows_and_follow_a_wrapped_storage():
+    # 300 rows of a 330-row storage: 6 blocks of 64, the last one partly written; one block of
+    # near-zero priorities.
+    sampler = PrioritySampler(capacity=330, alpha=1.0, beta=0.5, eps=1e-9)
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(330), sampler=sampler, batch_size=8)
+    buffer.extend(TensorDict({"x": torch.zeros(300)}, batch_size=[300]))
+    errors = torch.rand(300, generator=torch.Generator().manual_seed(1)) + 0.5
+    errors[64:128] = 1e-6
+    sampler.update_priority(torch.arange(300), errors)
+    assert torch.allclose(sampler.block_sum, sampler.priority.view(-1, 64).sum(1))
+
+    def check(n, draws=400_000):
+        expected = sampler.priority[:n] / sampler.priority[:n].sum()
+        torch.manual_seed(2)
+        index, info = sampler.sample(buffer.storage, draws)
+        assert int(index.max()) < n and int(index.min()) >= 0
+        # The near-zero block holds ~3e-7 of the mass: 0.1 draws expected, a few at most.
+        assert int(((index >= 64) & (index < 128)).sum()) <= 3
+        counts = torch.bincount(index, minlength=n).double() / draws
+        sigma = (expected * (1 - expected) / draws).sqrt()
+        seen = expected * draws >= 5  # where a count is near normal
+        assert torch.all((counts - expected).abs()[seen] <= 5 * sigma[seen])
+        weight = info["priority_weight"]
+        assert torch.allclose(weight, (n * expected[index]) ** -0.5)
+
+    check(300)
+    # 60 more rows wrap round: rows 300-329 and then 0-29 are new, at the largest priority.
+    buffer.extend(TensorDict({"x": torch.ones(60)}, batch_size=[60]))
+    assert len(buffer) == 330
+    top = sampler.max_priority
+    assert top == pytest.approx(float(errors.max()), rel=1e-6)  # alpha 1: the largest |error|
+    assert torch.allclose(sampler.priority[:30], torch.full((30,), top, dtype=torch.float64))
+    assert torch.allclose(sampler.priority[300:330], torch.full((30,), top, dtype=torch.float64))
+    assert torch.allclose(sampler.block_sum, sampler.priority.view(-1, 64).sum(1))
+    check(330)
+
+
 def test_new_transitions_start_at_the_largest_priority_given():
     sampler = PrioritySampler(capacity=16, alpha=1.0, beta=0.4, eps=0.01)
     buffer = filled_buffer(4, sampler)
@@ -117,6 +154,16 @@ def test_a_prioritized_update_weights_its_rows_and_sets_their_priorities(scenari
             assert got.keys() == expected.keys() and "td_error" not in got
             for name in expected:
                 assert got[name].item() == pytest.approx(expected[name].item(), rel=1e-3), name
+        # The weights reach the losses: all ones is the unweighted update (TorchRL's weighted
+        # mean), other weights another one.
+        batch = transitions[:32]
+        losses = []
+        for weights in (None, torch.ones(32), torch.linspace(0.1, 2.0, 32)):
+            agent, _ = agent_and_buffer(False)
+            torch.manual_seed(0)
+            losses.append(agent.update(batch.clone(), weights)["loss_qvalue"].item())
+        assert losses[1] == pytest.approx(losses[0], rel=1e-6)
+        assert losses[2] != pytest.approx(losses[0], rel=1e-3)
     eager_p, compiled_p = eager_buffer.sampler.priority, compiled_buffer.sampler.priority
     n = len(transitions)
     assert torch.allclose(eager_p[:n], compiled_p[:n], rtol=1e-3)
