@@ -138,10 +138,8 @@ def test_a_prioritized_update_weights_its_rows_and_sets_their_priorities(scenari
         return agent, buffer
 
     with torch._inductor.config.patch(fallback_random=True):
-        (eager, eager_buffer), (compiled, compiled_buffer) = (
-            agent_and_buffer(False),
-            (agent_and_buffer(True)),
-        )
+        eager, eager_buffer = agent_and_buffer(False)
+        compiled, compiled_buffer = agent_and_buffer(True)
         drawn = torch.zeros(len(transitions), dtype=torch.bool)
         for step in range(SACAgent.WARMUP_CALLS + 2):
             torch.manual_seed(step)  # the rows the update will draw

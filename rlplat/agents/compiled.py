@@ -141,7 +141,7 @@ class CompiledUpdate:
         self.loss, self.optimizers, self.tau = loss, dict(optimizers), tau
         self._soft_pairs = list(soft_pairs)
         self.keys: tuple = ()
-        self._layout: tuple = ()  # the batch entries and whether weighted, of the last call
+        self._weighted: bool | None = None  # whether the last call weighted its rows
         options = dict(OPTIONS)
         if not TRACE_GRAD:
             options["joint_custom_pre_pass"] = ReluGradAsProduct()
@@ -203,9 +203,9 @@ class CompiledUpdate:
         (prioritized replay's importance weights, one per row) each row's losses are weighted
         and the result also holds each row's ``td_error`` (the loss's priority); without, the
         graph is the unweighted update's alone."""
-        layout = (keys, weights is None)
-        if layout != self._layout:  # another batch layout: compile for it, with guards
-            self.keys, self._layout, self._calls = keys, layout, 0
+        weighted = weights is not None
+        if (keys, weighted) != (self.keys, self._weighted):  # another layout: compile, guarded
+            self.keys, self._weighted, self._calls = keys, weighted, 0
         args = (tuple(columns), index, weights, *self._state)
         if self._calls < self.WARMUP_CALLS:
             self._calls += 1

@@ -532,7 +532,7 @@ def make_replay_buffer(algo: Mapping[str, Any], device="cpu") -> TensorDictRepla
         PrioritySampler(
             algo["buffer_size"], algo["priority_alpha"], algo["priority_beta"], PRIORITY_EPS
         )
-        if algo.get("priority_alpha", 0.0) > 0
+        if algo["priority_alpha"] > 0
         else RandomSampler()
     )
     return TensorDictReplayBuffer(storage=storage, sampler=sampler, batch_size=algo["batch_size"])
