@@ -18,8 +18,10 @@ train: $(STAMP)
 scenarios: $(STAMP)
 	$(VENV)/bin/python -m rlplat.scenarios out_dir=data/scenarios/pursuit
 
+# The suite spread over one worker per core (pytest-xdist); each test file's tests stay on
+# one worker, so that its module-scoped fixtures are built once.
 test: $(STAMP)
-	$(VENV)/bin/python -m pytest
+	$(VENV)/bin/python -m pytest -n auto --dist loadfile
 
 clean:
 	rm -rf $(VENV) data .pytest_cache .ruff_cache

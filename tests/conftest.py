@@ -1,9 +1,11 @@
 """Fixtures shared by the test modules, and the suite's machine options.
 
 ``--torch-threads N`` runs the suite, and every command-line tool it starts in a subprocess,
-with N torch CPU threads. Which CPU kernels torch picks is set before torch is imported, by the
-environment variable ``ATEN_CPU_CAPABILITY`` (e.g. ``avx2`` or ``default``), which the
-subprocesses inherit as they are; torch.compile's on-disk cache is kept apart per capability.
+with N torch CPU threads; under pytest-xdist (``make test`` runs ``pytest -n auto``) a worker
+takes its share of the cores unless N is given. Which CPU kernels torch picks is set before
+torch is imported, by the environment variable ``ATEN_CPU_CAPABILITY`` (e.g. ``avx2`` or
+``default``), which the subprocesses inherit as they are; torch.compile's on-disk cache is kept
+apart per capability.
 
 A test that takes a ``device`` argument runs on the CPU and, where torch sees one, on a CUDA
 device (``pytest -k cuda`` runs those alone on a GPU machine).
@@ -118,6 +120,8 @@ def pytest_configure(config):
         os.environ["TORCHINDUCTOR_CACHE_DIR"] = f"{default_cache_dir()}_{capability}"
     threads = config.getoption("--torch-threads")
     if threads is None:
+        threads = _threads_per_worker()
+    if threads is None:
         return
     if threads < 1:
         raise pytest.UsageError(f"--torch-threads: must be a positive integer, got {threads}")
@@ -125,6 +129,17 @@ def pytest_configure(config):
     # torch reads OMP_NUM_THREADS when it starts: the subprocesses (train.py, evaluate.py,
     # python -m rlplat...) inherit the environment and start with the same thread count.
     os.environ["OMP_NUM_THREADS"] = str(threads)
+
+
+def _threads_per_worker() -> int | None:
+    """Under ``pytest -n N`` (pytest-xdist, as ``make test`` runs the suite) each worker takes
+    its share of the cores: N processes with torch's default thread count each would wait for
+    each other on every small kernel. None outside xdist (torch's own default)."""
+    workers = os.environ.get("PYTEST_XDIST_WORKER_COUNT")
+    if workers is None:
+        return None
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return max(1, (cores or 1) // int(workers))
 
 
 @pytest.fixture(autouse=True)
