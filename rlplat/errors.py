@@ -1,4 +1,5 @@
-"""Errors that rlplat reports to users as one line, before any work starts."""
+"""Errors that rlplat reports to users as one line: before any work starts, or (a diverged
+training run) as soon as the work cannot go on."""
 
 
 class RlplatError(Exception):
@@ -15,3 +16,7 @@ class ScenarioFileError(RlplatError):
 
 class ExportError(RlplatError):
     """An exported artifact does not compute what the network it came from computes."""
+
+
+class DivergenceError(RlplatError, FloatingPointError):
+    """A training run's losses or TD errors stopped being finite; the run stops at once."""

@@ -9,6 +9,7 @@ from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffe
 
 from rlplat.agents.replay import PrioritySampler
 from rlplat.agents.sac import PRIORITY_EPS, SACAgent, make_replay_buffer, net_spec
+from rlplat.errors import DivergenceError
 
 
 def filled_buffer(n: int, sampler) -> TensorDictReplayBuffer:
@@ -85,6 +86,16 @@ def test_new_transitions_start_at_the_largest_priority_given():
     assert sampler.priority[6:].sum() == 0  # never written: never drawn
     index, _ = sampler.sample(buffer.storage, 1000)
     assert int(index.max()) <= 5
+
+
+def test_a_non_finite_td_error_is_refused_and_changes_no_priority():
+    sampler = PrioritySampler(capacity=8, alpha=0.6, beta=0.4, eps=0.01)
+    filled_buffer(4, sampler)
+    before = sampler.priority.clone()
+    for bad in (float("nan"), float("inf")):
+        with pytest.raises(DivergenceError, match="1 of the 2 TD errors .* not finite"):
+            sampler.update_priority(torch.tensor([0, 1]), torch.tensor([0.5, bad]))
+    assert torch.equal(sampler.priority, before)
 
 
 @pytest.mark.parametrize("bad", [dict(alpha=-0.1), dict(beta=-1.0), dict(eps=0.0)])

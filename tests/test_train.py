@@ -8,7 +8,7 @@ import torch
 from omegaconf import OmegaConf
 
 from rlplat.agents.checkpoint import load_checkpoint, load_policy
-from rlplat.errors import ConfigError
+from rlplat.errors import ConfigError, DivergenceError
 from rlplat.experiment.config import compose_config
 from rlplat.scenarios import STRATEGIES
 
@@ -263,6 +263,30 @@ def test_a_run_stopped_on_the_clock_says_so(scenarios, tmp_path, tiny_run, caplo
     assert summary["frames"] < 100000
     assert f"reached at {summary['frames']} of train.total_frames=100000" in caplog.text
     assert "stopped on the clock" in caplog.text
+
+
+def test_a_diverged_run_stops_at_once_with_its_checkpoints_from_before(
+    scenarios, tmp_path, tiny_run, monkeypatch
+):
+    from rlplat.agents.sac import SACAgent
+
+    update, calls = SACAgent.update_from, []
+
+    def diverging(self, buffer):
+        out = update(self, buffer)
+        calls.append(out)
+        if len(calls) >= 5:  # the critics' loss goes NaN from the fifth update on
+            out = {**out, "loss_qvalue": torch.full_like(out["loss_qvalue"], float("nan"))}
+        return out
+
+    monkeypatch.setattr(SACAgent, "update_from", diverging)
+    run = tmp_path / "run"
+    with pytest.raises(DivergenceError, match=r"^train: loss_qvalue is nan in the updates up to"):
+        tiny_run(scenarios, run, "train.total_frames=2048")
+    assert len(calls) < 20  # stopped in the batch of updates where it happened
+    assert not (run / "summary.json").exists()
+    best = load_checkpoint(run / "checkpoints" / "best.pt")  # the policy as initialised
+    assert all(torch.isfinite(v).all() for v in best["actor"].values())
 
 
 def test_progress_counts_the_budget_nearest_its_end(monkeypatch):

@@ -18,6 +18,8 @@ import torch
 from torchrl.data.replay_buffers.samplers import Sampler
 from torchrl.data.replay_buffers.storages import Storage
 
+from rlplat.errors import DivergenceError
+
 #: Rows per block of priorities.
 BLOCK = 64
 
@@ -94,6 +96,13 @@ class PrioritySampler(Sampler):
         """Set the priorities of rows ``index`` from their |TD error| ``priority``."""
         index = torch.as_tensor(index, dtype=torch.long, device="cpu").reshape(-1)
         priority = torch.as_tensor(priority).to("cpu", torch.float64)
+        bad = int((~torch.isfinite(priority)).sum())
+        if bad:
+            # One NaN priority makes every later draw's cumulative sums NaN.
+            raise DivergenceError(
+                f"replay: {bad} of the {priority.numel()} TD errors given to the priority "
+                "sampler are not finite: the critics diverged"
+            )
         value = (priority.abs() + self.eps).pow(self.alpha)
         value = value.expand(index.shape) if value.numel() == 1 else value.reshape(-1)
         self._set(index, value)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import random
 import time
 from dataclasses import asdict, dataclass
@@ -45,7 +46,7 @@ from rlplat.agents.policies import REFERENCE, NoisyPolicy, make_scripted_policy
 from rlplat.agents.sac import NetSpec, SACAgent, actor_body, make_replay_buffer, net_spec
 from rlplat.agents.transitions import replay_rows
 from rlplat.envs.pursuit import ROLES, PursuitEnv, flown_attackers
-from rlplat.errors import ConfigError
+from rlplat.errors import ConfigError, DivergenceError
 from rlplat.eval.episodes import SCORE_NAME, EpisodeResults, evaluate
 from rlplat.eval.metrics import wilson_interval
 from rlplat.eval.plots import plot_learning_curve
@@ -228,7 +229,9 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
                     state.updates += 1
                 if losses:
                     stacked = {k: torch.stack([x[k] for x in losses]) for k in losses[0]}
-                    values.update({f"train/{k}": v.mean().item() for k, v in stacked.items()})
+                    means = {k: v.mean().item() for k, v in stacked.items()}
+                    check_finite(means, state)
+                    values.update({f"train/{k}": v for k, v in means.items()})
 
             # Logging
             now = time.perf_counter()
@@ -711,6 +714,19 @@ def outcome(results: EpisodeResults, role: str) -> str:
     if SCORE_NAME[role] != "capture_rate":
         text = f"{SCORE_NAME[role].replace('_', ' ')} {results.score(role):.3f}, {text}"
     return text
+
+
+def check_finite(losses: dict[str, float], state: RunState) -> None:
+    """Stop a run whose losses (means over a batch's updates) are no longer finite: every later
+    update, validation and checkpoint would carry the NaN on. The checkpoints on disk are all
+    from before: they are written at validations, after this check."""
+    for key, value in losses.items():
+        if not math.isfinite(value):
+            raise DivergenceError(
+                f"train: {key} is {value} in the updates up to {state.updates} "
+                f"({state.frames} frames): the run diverged and stopped; its checkpoints are from "
+                "before (lower algo.critic_lr / algo.actor_lr, or check the reward's scale)"
+            )
 
 
 def episode_metrics(batch, terms: list[str]) -> dict[str, float]:
