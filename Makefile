@@ -18,10 +18,11 @@ train: $(STAMP)
 scenarios: $(STAMP)
 	$(VENV)/bin/python -m rlplat.scenarios out_dir=data/scenarios/pursuit
 
-# The suite spread over one worker per core (pytest-xdist); each test file's tests stay on
-# one worker, so that its module-scoped fixtures are built once.
+# The suite spread over one worker per core (pytest-xdist): each worker starts on a contiguous
+# share of the tests (a test file's module-scoped fixtures built once) and an idle one takes
+# tests from the others' ends, so the long learning tests do not finish alone.
 test: $(STAMP)
-	$(VENV)/bin/python -m pytest -n auto --dist loadfile
+	$(VENV)/bin/python -m pytest -n auto --dist worksteal
 
 clean:
 	rm -rf $(VENV) data .pytest_cache .ruff_cache
