@@ -285,6 +285,8 @@ def test_a_diverged_run_stops_at_once_with_its_checkpoints_from_before(
         tiny_run(scenarios, run, "train.total_frames=2048")
     assert len(calls) < 20  # stopped in the batch of updates where it happened
     assert not (run / "summary.json").exists()
+    logged = (run / "metrics" / "scalars" / "train" / "loss_qvalue.csv").read_text().split()
+    assert logged[-1].endswith(",nan")  # the log shows the batch where it diverged
     best = load_checkpoint(run / "checkpoints" / "best.pt")  # the policy as initialised
     assert all(torch.isfinite(v).all() for v in best["actor"].values())
 

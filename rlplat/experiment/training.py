@@ -229,9 +229,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
                     state.updates += 1
                 if losses:
                     stacked = {k: torch.stack([x[k] for x in losses]) for k in losses[0]}
-                    means = {k: v.mean().item() for k, v in stacked.items()}
-                    check_finite(means, state)
-                    values.update({f"train/{k}": v for k, v in means.items()})
+                    values.update({f"train/{k}": v.mean().item() for k, v in stacked.items()})
 
             # Logging
             now = time.perf_counter()
@@ -240,6 +238,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
             values["time/frames_per_s"] = (state.frames - frames_at_start) / (now - session_start)
             values["train/updates"] = state.updates
             run.metrics.log(values, state.frames)
+            check_finite(values, state)  # after the log, which then shows where it diverged
 
             # Validation and the last checkpoint
             out_of_budget = state.frames >= cfg.train.total_frames or (
@@ -259,6 +258,9 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
                         cfg.train.max_minutes, state.frames, cfg.train.total_frames,
                     )  # fmt: skip
                 break
+    except BaseException:
+        run.metrics.close()  # what was logged reaches every logger (wandb, TensorBoard)
+        raise
     finally:
         progress.close()
         collector.shutdown()
@@ -716,14 +718,15 @@ def outcome(results: EpisodeResults, role: str) -> str:
     return text
 
 
-def check_finite(losses: dict[str, float], state: RunState) -> None:
-    """Stop a run whose losses (means over a batch's updates) are no longer finite: every later
-    update, validation and checkpoint would carry the NaN on. The checkpoints on disk are all
-    from before: they are written at validations, after this check."""
-    for key, value in losses.items():
-        if not math.isfinite(value):
+def check_finite(values: dict[str, float], state: RunState) -> None:
+    """Stop a run whose losses (``train/*``: means over a batch's updates) are no longer finite:
+    every later update, validation and checkpoint would carry the NaN on. The checkpoints on
+    disk are all from before: they are written at validations, after this check."""
+    for key, value in values.items():
+        if key.startswith("train/") and not math.isfinite(value):
+            name = key.removeprefix("train/")
             raise DivergenceError(
-                f"train: {key} is {value} in the updates up to {state.updates} "
+                f"train: {name} is {value} in the updates up to {state.updates} "
                 f"({state.frames} frames): the run diverged and stopped; its checkpoints are from "
                 "before (lower algo.critic_lr / algo.actor_lr, or check the reward's scale)"
             )
