@@ -719,9 +719,10 @@ def outcome(results: EpisodeResults, role: str) -> str:
 
 
 def check_finite(values: dict[str, float], state: RunState) -> None:
-    """Stop a run whose losses (``train/*``: means over a batch's updates) are no longer finite:
-    every later update, validation and checkpoint would carry the NaN on. The checkpoints on
-    disk are all from before: they are written at validations, after this check."""
+    """Stop a run whose ``train/*`` scalars (the losses, means over a batch's updates, and the
+    returns of the episodes that ended in it) are no longer finite: every later update,
+    validation and checkpoint would carry the NaN on. The checkpoints on disk are all from
+    before: they are written at validations, after this check."""
     for key, value in values.items():
         if key.startswith("train/") and not math.isfinite(value):
             name = key.removeprefix("train/")
