@@ -129,40 +129,137 @@ def test_calls_sent_together_go_out_in_one_write_and_the_first_failure_in_order_
     client.close()
 
 
-def test_notifications_are_skipped_and_a_non_message_ends_reading(caplog):
-    import threading
+class RawSimulator:
+    """One connection of a hand-written msgpack-rpc server: ``reply(msgid, method, params)``
+    gives the messages to send for each request (bytes go as msgpack bin), or "close" to hang
+    up."""
 
-    import msgpack
+    def __init__(self, reply) -> None:
+        import threading
 
-    listener = socket.create_server(("127.0.0.1", 0))
-    port = listener.getsockname()[1]
+        self.reply = reply
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.address = f"127.0.0.1:{self.listener.getsockname()[1]}"
+        self.thread = threading.Thread(target=self.serve, daemon=True)
+        self.thread.start()
 
-    def serve() -> None:  # one connection; msgpack-rpc allows the server to notify at will
-        conn, _ = listener.accept()
-        unpacker, answered = msgpack.Unpacker(raw=False), 0
-        while answered < 3 and (data := conn.recv(65536)):
-            unpacker.feed(data)
-            for _, msgid, _, _ in unpacker:
-                replies = [
-                    [[1, msgid, None, True]],  # the ping
-                    [[2, "surprise", []], [1, msgid, None, ["Attacker"]]],  # listVehicles
-                    [[7, "not msgpack-rpc"]],  # anything else: reading ends
-                ][answered]
-                conn.sendall(b"".join(msgpack.packb(r) for r in replies))
-                answered += 1
-        time.sleep(1.0)
-        conn.close()
+    def serve(self) -> None:
+        import msgpack
 
-    thread = threading.Thread(target=serve, daemon=True)
-    thread.start()
-    client = AirSimClient(f"127.0.0.1:{port}", connect_timeout_s=2.0, timeout_s=0.5)
+        conn, _ = self.listener.accept()
+        unpacker = msgpack.Unpacker(raw=False)
+        with conn:
+            while data := conn.recv(65536):
+                unpacker.feed(data)
+                for _, msgid, method, params in unpacker:
+                    out = self.reply(msgid, method, params)
+                    if out == "close":
+                        return
+                    conn.sendall(b"".join(msgpack.packb(m) for m in out))
+
+    def close(self) -> None:
+        self.thread.join(timeout=5)
+        self.listener.close()
+
+
+def test_notifications_and_server_requests_are_skipped_and_a_non_message_fails_at_once():
+    def reply(msgid, method, params):
+        if method == "ping":
+            return [[1, msgid, None, True]]
+        if method == "listVehicles":  # msgpack-rpc lets a server notify, or call, at will
+            return [[2, "surprise", []], [0, 99, "hello", []], [1, msgid, None, ["Attacker"]]]
+        return [[7, "not msgpack-rpc"]]  # anything else: not a message
+
+    sim = RawSimulator(reply)
+    client = AirSimClient(sim.address, connect_timeout_s=2.0, timeout_s=5.0)
     assert client.vehicles() == ["Attacker"]
-    with pytest.raises(AirSimError, match=r"stopped answering: no answer to listVehicles"):
+    t0 = time.monotonic()
+    with pytest.raises(AirSimError) as info:
+        client.settings()
+    assert time.monotonic() - t0 < 2.0  # at once, not after timeout_s
+    message = str(info.value)
+    assert "sent an answer that is not msgpack-rpc while waiting for getSettingsString" in message
+    assert "[7, 'not msgpack-rpc']" in message and "\n" not in message
+    with pytest.raises(AirSimError, match="the connection is closed"):
         client.vehicles()
-    assert "not a msgpack-rpc response" in caplog.text
     client.close()
-    thread.join()
-    listener.close()
+    sim.close()
+
+
+STATE = {  # a getMultirotorState answer as AirSim's rpclib adaptor packs it (the fields read)
+    "kinematics_estimated": {
+        "position": {"x_val": 1, "y_val": 2.5, "z_val": -3},  # integers where floats are usual
+        "linear_velocity": {"x_val": 0.0, "y_val": 0.0, "z_val": 0.0},
+    },
+    "timestamp": 123_000_000,
+}
+VELOCITY = STATE["kinematics_estimated"]["linear_velocity"]
+
+
+@pytest.mark.parametrize(
+    ("state", "collision", "expected"),
+    [
+        ({**STATE, "timestamp": None}, {"has_collided": False}, "timestamp is None, not a number"),
+        (
+            {"kinematics_estimated": {"linear_velocity": VELOCITY}, "timestamp": 1},
+            {"has_collided": False},
+            "getMultirotorState for Attacker (the test) has no kinematics_estimated.position.x_val",
+        ),
+        (None, {"has_collided": False}, "has no kinematics_estimated.position.x_val"),
+        (STATE, {}, "simGetCollisionInfo for Attacker (the test) has no has_collided flag"),
+        (STATE, None, "has no has_collided flag"),
+    ],
+)  # fmt: skip
+def test_an_answer_that_lacks_a_field_names_it_and_is_never_filled_with_a_default(
+    state, collision, expected
+):
+    def reply(msgid, method, params):
+        answers = {"ping": True, "getMultirotorState": state, "simGetCollisionInfo": collision}
+        return [[1, msgid, None, answers[method]]]
+
+    sim = RawSimulator(reply)
+    client = AirSimClient(sim.address, connect_timeout_s=2.0, timeout_s=2.0)
+    with pytest.raises(AirSimError) as info:
+        client.read(["Attacker"], "the test")
+    assert expected in str(info.value) and "\n" not in str(info.value)
+    client.close()
+    sim.close()
+
+
+def test_integers_bin_strings_and_integer_keys_are_read_and_error_texts_are_one_line():
+    def reply(msgid, method, params):
+        answers = {
+            "ping": [1, msgid, None, True],
+            "listVehicles": [1, msgid, None, [b"Attacker", b"Defender"]],  # bin, not str
+            "getMultirotorState": [1, msgid, None, STATE],
+            "simGetCollisionInfo": [1, msgid, None, {"has_collided": 0, 7: "extra"}],
+            "getSettingsString": [1, msgid, "first line\n  second line", None],
+        }
+        return [answers[method]]
+
+    sim = RawSimulator(reply)
+    client = AirSimClient(sim.address, connect_timeout_s=2.0, timeout_s=2.0)
+    assert client.vehicles() == ["Attacker", "Defender"]
+    states, hits = client.read(["Attacker"], "the test")
+    assert states[0].position == (1.0, 2.5, -3.0) and states[0].timestamp_ns == 123_000_000
+    assert hits == [False]
+    with pytest.raises(AirSimError) as info:
+        client.settings()
+    assert str(info.value).endswith(
+        "refused getSettingsString (its settings): first line second line"
+    )
+    client.close()
+    sim.close()
+
+
+def test_a_listener_that_hangs_up_before_answering_is_not_called_absent():
+    sim = RawSimulator(lambda msgid, method, params: "close")
+    with pytest.raises(AirSimError) as info:
+        AirSimClient(sim.address, connect_timeout_s=2.0, timeout_s=1.0)
+    message = str(info.value)
+    assert message.startswith(f"{sim.address} closed the connection before answering ping")
+    assert "no simulator" not in message and "\n" not in message
+    sim.close()
 
 
 def test_a_move_the_simulator_refuses_stops_the_step(server):
@@ -322,6 +419,26 @@ def test_clock_speed_asks_for_period_over_k_of_the_simulators_wall_clock(scenari
         env.close()
         with pytest.raises(ConfigError, match=r"dynamics.clock_speed: 1, .* ClockSpeed 4"):
             airsim_env(scenarios, srv.address)
+
+
+def test_a_simulator_whose_continue_answers_before_its_time_has_run_is_waited_for(
+    scenarios, caplog
+):
+    # Older AirSim's continueForTime starts the simulation and answers at once; the step
+    # reads the drones when simIsPaused says the period has run, and then only.
+    settings = {**SETTINGS, "ClockType": "ScalableClock"}
+    with TestServer(settings, realtime=True, continue_answers_at_once=True) as srv:
+        with caplog.at_level("WARNING", logger="rlplat.envs.airsim.dynamics"):
+            env = airsim_env(scenarios, srv.address)
+        assert "ClockType ScalableClock keeps time while paused" in caplog.text
+        env.reset()
+        srv.start_recording()
+        for _ in range(3):
+            env.rand_step()
+            assert env.dynamics.last_advance_s == pytest.approx(PERIOD, abs=1e-9)
+        calls = [r.get("call") for r in srv.take_recording()]
+        assert calls.count("simContinueForTime") == 3 and "simIsPaused" in calls
+        env.close()
 
 
 # Faults: one line each, within a bounded time ----------------------------------------------

@@ -28,6 +28,7 @@ import contextlib
 import json
 import logging
 import math
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from types import SimpleNamespace
@@ -43,6 +44,10 @@ START_HINT = (
     "(SimMode Multirotor, ApiServerPort = this port), or the loopback test server with "
     "`python -m rlplat.airsim serve --port PORT`"
 )
+
+
+#: rpclib's words for a method the server does not have.
+NO_FUNCTION = "could not find function"
 
 
 class AirSimError(RlplatError):
@@ -103,21 +108,40 @@ def plain(value: Any) -> Any:
     raise TypeError(f"cannot send {type(value).__name__} to the simulator: {value!r}")
 
 
-def _triple(v: Any) -> tuple[float, float, float]:
-    return (float(v.x_val), float(v.y_val), float(v.z_val))
+def _field(raw: Any, path: str) -> Any:
+    """``raw[k1][k2]...`` for the dotted ``path``; KeyError naming the first key missing."""
+    value = raw
+    for key in path.split("."):
+        if not isinstance(value, dict) or key not in value:
+            raise KeyError(key)
+        value = value[key]
+    return value
 
 
-def _fields(raw: Any) -> VehicleState | None:
-    """What a lock step reads of a ``getMultirotorState`` answer, taken straight from its map
-    (the values the library's ``MultirotorState`` would hold); None if a field is missing."""
-    try:
-        k = raw["kinematics_estimated"]
-        p, v = k["position"], k["linear_velocity"]
-        position = (float(p["x_val"]), float(p["y_val"]), float(p["z_val"]))
-        velocity = (float(v["x_val"]), float(v["y_val"]), float(v["z_val"]))
-        return VehicleState(position, velocity, int(raw["timestamp"]))
-    except (KeyError, TypeError, IndexError):
-        return None
+def _fields(raw: Any) -> VehicleState:
+    """What a lock step reads of a ``getMultirotorState`` answer, taken from its map (the
+    values the library's ``MultirotorState`` would hold).
+
+    Raises:
+        ValueError: a field is missing or not a number, naming its path.
+    """
+    values = {}
+    for path in (
+        *(f"kinematics_estimated.{v}.{a}_val" for v in ("position", "linear_velocity")
+          for a in "xyz"),
+        "timestamp",
+    ):  # fmt: skip
+        try:
+            value = _field(raw, path)
+        except KeyError:
+            raise ValueError(f"has no {path}") from None
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"{path} is {value!r:.40}, not a number")
+        values[path] = value
+    k = "kinematics_estimated."
+    position = tuple(float(values[f"{k}position.{a}_val"]) for a in "xyz")
+    velocity = tuple(float(values[f"{k}linear_velocity.{a}_val"]) for a in "xyz")
+    return VehicleState(position, velocity, int(values["timestamp"]))
 
 
 class _Lost(Exception):
@@ -126,6 +150,19 @@ class _Lost(Exception):
 
 class _Expired(Exception):
     """No answer before the deadline."""
+
+
+class _Unreadable(Exception):
+    """The simulator sent something that is not a msgpack-rpc message."""
+
+
+def one_line(reason: Any, limit: int = 300) -> str:
+    """``reason`` as one line of at most ``limit`` characters (a server's error text may hold
+    newlines or bytes)."""
+    if isinstance(reason, bytes):
+        reason = reason.decode("utf-8", "backslashreplace")
+    text = " ".join(str(reason).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 #: How the msgpack-rpc library words a failed or closed connection (the text of its
@@ -170,6 +207,7 @@ def _session_types():
     """The msgpack-rpc session and transport the library rides on, with rlplat's policy: no
     silent reconnect after a loss, read errors kept quiet (the loss is reported), answers
     handed to the session as they are read."""
+    import msgpack
     import msgpackrpc
     from msgpackrpc.future import Future
     from msgpackrpc.message import NOTIFY, REQUEST, RESPONSE
@@ -191,27 +229,38 @@ def _session_types():
             return None  # consumed: nothing for the stream's own buffer
 
     class Socket(tcp.ClientSocket):
+        def __init__(self, stream, transport):
+            super().__init__(stream, transport)
+            # Maps with integer keys, and text that is not UTF-8, are read (not a reason to
+            # stop reading): what an answer holds is checked where it is used.
+            self._unpacker = msgpack.Unpacker(
+                raw=False, strict_map_key=False, unicode_errors="backslashreplace"
+            )
+
         async def on_connect(self):
             self._stream.set_nodelay(True)  # small requests go out at once (no Nagle delay)
             self._stream.sink = self.on_data
             await self._transport.on_connect(self)
 
         def on_data(self, data: bytes) -> None:
-            """Answers to the session as they arrive; notifications are skipped (nothing awaits
-            them). Anything else ends reading, as it ends the library's read loop (the calls
-            then time out)."""
+            """Answers to the session as they arrive; notifications, and requests from the
+            server (rlplat serves none), are skipped. Anything else is not msgpack-rpc: every
+            call in flight fails at once with what was read, and the connection is closed."""
             self._unpacker.feed(data)
             try:
                 for message in self._unpacker:
-                    if len(message) == 3 and message[0] == NOTIFY:
+                    kind = message[0] if isinstance(message, list) and message else None
+                    if kind == NOTIFY and len(message) == 3:
                         continue
-                    if len(message) != 4 or message[0] != RESPONSE:
-                        raise ValueError(f"not a msgpack-rpc response: {message!r:.200}")
+                    if kind == REQUEST and len(message) == 4:
+                        log.debug("simulator sent request %r: not served", message[2])
+                        continue
+                    if kind != RESPONSE or len(message) != 4:
+                        raise ValueError(f"not a msgpack-rpc message: {message!r:.120}")
                     self.on_response(message[1], message[2], message[3])
             except Exception as e:
                 self._stream.sink = _ignore
-                host, port = self._transport._address.unpack()
-                log.warning("simulator at %s:%s: %s; no longer reading it", host, port, e)
+                self._transport._session.on_connect_failed(_Unreadable(one_line(e)))
 
     class Transport(tcp.ClientTransport):
         async def connect(self):
@@ -397,6 +446,16 @@ class AirSimClient:
             reason = e.args[0] if e.args else e
             lost = _no_connection(reason)
             connecting = self._field == "dynamics.connect_timeout_s"
+            if isinstance(reason, _Unreadable):
+                raise AirSimError(
+                    f"simulator at {self.address} sent an answer that is not msgpack-rpc while "
+                    f"waiting for {method} ({what}): {reason}; is it an AirSim RPC server?"
+                ) from None
+            if connecting and isinstance(reason, _Lost):  # something listens, then hangs up
+                raise AirSimError(
+                    f"{self.address} closed the connection before answering {method} "
+                    f"({what}): is it an AirSim RPC server? {START_HINT}"
+                ) from None
             if connecting and lost:  # the first call: nothing listens there
                 raise AirSimError(
                     f"no simulator at {self.address} (connection refused or unreachable); "
@@ -415,7 +474,7 @@ class AirSimClient:
                     f"{method} ({what}); restart it and resume the run"
                 ) from None
             raise AirSimError(
-                f"simulator at {self.address} refused {method} ({what}): {reason}"
+                f"simulator at {self.address} refused {method} ({what}): {one_line(reason)}"
             ) from None
 
     def send(self, method: str, *args: Any):
@@ -452,12 +511,24 @@ class AirSimClient:
 
     def vehicles(self) -> list[str]:
         """The simulator's vehicle names (``listVehicles``)."""
-        return [str(v) for v in self.call("listVehicles", "its vehicles", self._api.listVehicles)]
+        names = self.call("listVehicles", "its vehicles", self._api.listVehicles)
+        if not isinstance(names, list):
+            raise AirSimError(
+                f"simulator at {self.address}: listVehicles answered {names!r:.80}, not a list"
+            )
+        return [v.decode("utf-8", "replace") if isinstance(v, bytes) else str(v) for v in names]
 
     def require_vehicles(self, names: Sequence[str]) -> None:
         """Raise :class:`AirSimError` listing the simulator's vehicles if one of ``names`` is
         not among them."""
-        have = self.vehicles()
+        try:
+            have = self.vehicles()
+        except AirSimError as e:
+            if NO_FUNCTION not in str(e):
+                raise
+            log.warning("simulator at %s has no listVehicles: vehicles %s not checked",
+                        self.address, ", ".join(names))  # fmt: skip
+            return
         missing = [n for n in names if n not in have]
         if missing:
             raise AirSimError(
@@ -468,7 +539,14 @@ class AirSimClient:
 
     def settings(self) -> dict[str, Any]:
         """The simulator's settings.json (``getSettingsString``), {} if it gives none."""
-        text = self.call("getSettingsString", "its settings", self._api.getSettingsString)
+        try:
+            text = self.call("getSettingsString", "its settings", self._api.getSettingsString)
+        except AirSimError as e:
+            if NO_FUNCTION not in str(e):
+                raise
+            log.warning("simulator at %s has no getSettingsString: its settings are not checked "
+                        "(dynamics.spawn places the vehicles)", self.address)  # fmt: skip
+            return {}
         try:
             parsed = json.loads(text) if text else {}
         except (TypeError, ValueError):
@@ -523,7 +601,8 @@ class AirSimClient:
             error = future.error if future._set_flag else None
             if error is not None and "cancel" not in str(error).lower():
                 raise AirSimError(
-                    f"simulator at {self.address} refused moveByVelocity for {name}: {error}"
+                    f"simulator at {self.address} refused moveByVelocity for {name}: "
+                    f"{one_line(error)}"
                 )
 
     def continue_for(self, seconds: float, what: str) -> None:
@@ -533,32 +612,48 @@ class AirSimClient:
             raise ValueError(f"seconds must be > 0, got {seconds!r}")
         self.call("simContinueForTime", what, self._api.simContinueForTime, float(seconds))
 
+    def wait_paused(self, what: str) -> bool:
+        """Wait until the simulation is paused again (``simIsPaused``), within ``timeout_s``:
+        for a simulator whose ``simContinueForTime`` answers before its time has run. True if
+        it was still running."""
+        deadline = time.monotonic() + self.timeout_s
+        running = False
+        while not self.call("simIsPaused", what, self._api.simIsPause):
+            running = True
+            if time.monotonic() > deadline:
+                raise AirSimError(
+                    f"simulator at {self.address} still runs {self.timeout_s:g} s after "
+                    f"simContinueForTime ({what}; dynamics.timeout_s)"
+                )
+            time.sleep(0.001)
+        return running
+
     def read(self, names: Sequence[str], what: str) -> tuple[list[VehicleState], list[bool]]:
         """Every vehicle's state and collision flag, sent together; the collision flag clears
-        on read (read it once per step). The fields are read from the answers' maps, through
-        the library's types only where an answer lacks one."""
-        lib = self._lib
+        on read (read it once per step). The fields are read from the answers' maps: an answer
+        that lacks one is an :class:`AirSimError` naming it (never a default)."""
         states = [self.send("getMultirotorState", n) for n in names]
         hits = [self.send("simGetCollisionInfo", n) for n in names]
         methods = ["getMultirotorState"] * len(names) + ["simGetCollisionInfo"] * len(names)
         answers = self.gather(states + hits, methods, what)
         self.check_moves()  # a refused move has been answered by now: it came first
         raw_states, raw_hits = answers[: len(names)], answers[len(names) :]
-        out = []
-        for raw in raw_states:
-            state = _fields(raw)
-            if state is None:  # not the usual map: the library's reading (its defaults)
-                s = lib.MultirotorState.from_msgpack(raw)
-                k = s.kinematics_estimated
-                state = VehicleState(_triple(k.position), _triple(k.linear_velocity),
-                                     int(s.timestamp))  # fmt: skip
-            out.append(state)
-        hits = []
-        for raw in raw_hits:
-            if isinstance(raw, dict) and "has_collided" in raw:
-                hits.append(bool(raw["has_collided"]))
-            else:
-                hits.append(bool(lib.CollisionInfo.from_msgpack(raw).has_collided))
+        out, hits = [], []
+        for name, raw in zip(names, raw_states, strict=True):
+            try:
+                out.append(_fields(raw))
+            except ValueError as e:
+                raise AirSimError(
+                    f"simulator at {self.address}: its getMultirotorState for {name} ({what}) {e}"
+                ) from None
+        for name, raw in zip(names, raw_hits, strict=True):
+            flag = raw.get("has_collided") if isinstance(raw, dict) else None
+            if not isinstance(flag, (bool, int)):
+                raise AirSimError(
+                    f"simulator at {self.address}: its simGetCollisionInfo for {name} ({what}) "
+                    f"has no has_collided flag: {raw!r:.80}"
+                )
+            hits.append(bool(flag))
         return out, hits
 
     def close(self) -> None:

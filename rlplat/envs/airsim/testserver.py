@@ -181,6 +181,9 @@ class TestServer:
         drag_xy, drag_z, mass: quadratic drag (N/(m/s)^2, none by default) and mass (kg).
         collision_radius: m, two vehicles closer than this are in contact.
         realtime: ``simContinueForTime(s)`` takes ``s`` wall seconds instead of running at once.
+        continue_answers_at_once: ``simContinueForTime`` answers as soon as it starts the
+            simulation, which runs on and pauses when its time is up (``simIsPaused`` tells):
+            AirSim versions whose ``continueForTime`` does not wait.
     """
 
     __test__ = False  # not a pytest test class
@@ -204,6 +207,7 @@ class TestServer:
         mass: float = 1.0,
         collision_radius: float = 0.5,
         realtime: bool = False,
+        continue_answers_at_once: bool = False,
     ) -> None:
         if not isinstance(settings, Mapping):
             raise ConfigError(f"settings must be a dict (settings.json), got {type(settings)}")
@@ -233,6 +237,7 @@ class TestServer:
         self.host, self.port = host, port
         self.clock_speed = float(clock_speed)
         self.realtime = bool(realtime)
+        self.continue_answers_at_once = bool(continue_answers_at_once)
         self.recording: list[dict[str, Any]] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
@@ -621,7 +626,12 @@ class TestServer:
     async def _continue_for_time(self, seconds: float) -> None:
         if not math.isfinite(seconds) or seconds < 0:
             raise _Fail(f"seconds must be a finite number >= 0, got {seconds}")
-        await self._continue(round(seconds * self.clock_speed * 1e9))
+        sim_ns = round(seconds * self.clock_speed * 1e9)
+        if self.continue_answers_at_once:
+            self._paused = False  # running until the continue ends
+            self._spawn(self._continue(sim_ns))
+            return
+        await self._continue(sim_ns)
 
     async def _continue_for_frames(self, frames: int) -> None:
         await self._continue(frames * self.world.dt_ns)
