@@ -155,6 +155,10 @@ def test_the_written_files_compute_the_torch_actions(run, exported, scenarios, t
         cwd=tmp_path, capture_output=True, text=True,
     )  # fmt: skip
     assert res.returncode == 0 and not res.stderr, res.stderr
+    # Before C99 tanhf is undeclared (an implicit int: wrong actions without a word): refused.
+    res = subprocess.run(["cc", "-std=c89", "-c", "policy.c", "-o", "old.o"], cwd=tmp_path,
+                         capture_output=True, text=True)  # fmt: skip
+    assert res.returncode != 0 and "policy.c needs C99 or later" in res.stderr
     # The files themselves, on the observations of the deterministic test-split rollout.
     cfg = load_run_config(run)
     env = build_env(cfg, scenarios=scenarios, split="test", num_envs=256,
@@ -413,7 +417,22 @@ def test_evaluating_an_artifact_needs_its_export_as_written(run, exported, tmp_p
     source.write_text(source.read_text().replace("1.20000005f", "1.0f"))
     with pytest.raises(ConfigError, match="policy.c is missing or not the file the card names"):
         evaluate_run(copy, policy="c")
+    card = copy / "export" / "best" / "card.json"
+    for text in ("{not json", '{"source": {}}'):
+        card.write_text(text)
+        with pytest.raises(ConfigError) as e:
+            evaluate_run(copy, policy="c")
+        assert f"policy: {card} is not an export card" in _one_line(e)
     assert not (copy / "eval").exists()
+
+
+def test_flying_the_onnx_export_without_onnxruntime_is_one_line(monkeypatch):
+    monkeypatch.setitem(sys.modules, "onnxruntime", None)  # import fails: not installed
+    with pytest.raises(ConfigError) as e:
+        OnnxPolicy(b"", 9, 3)
+    assert _one_line(e) == (
+        "policy: onnx needs onnxruntime, which is not installed; pip install 'rlplat[export]'"
+    )
 
 
 # Every learner ----------------------------------------------------------------------------

@@ -282,7 +282,8 @@ def c_sources(
         "/* obs: the observation exactly as the env emits it (SI units, the order above).\n"
         + "".join(f" * {line}\n" for line in textwrap.wrap(f"action: {action}", 76))
         + " * A NaN observation gives NaN actions (an infinite one may), as the torch actor\n"
-        " * does: check them before flying the command. */\n"
+        " * does: check them before flying the command (not so under -ffast-math, which\n"
+        " * may turn them into finite actions: check the observation there). */\n"
         f"{C_API}\n\n"
         "#ifdef __cplusplus\n}\n#endif\n\n#endif /* RLPLAT_POLICY_H */\n"
     )
@@ -347,7 +348,11 @@ def c_sources(
                 "edit). See policy.h for the interface.",
             ]
         )
-        + '#include <math.h>\n\n#include "policy.h"\n\n'
+        + "#if !defined(__cplusplus) && \\\n"
+        "    (!defined(__STDC_VERSION__) || __STDC_VERSION__ < 199901L)\n"
+        '#error "policy.c needs C99 or later (tanhf, expm1f): compile with -std=c99"\n'
+        "#endif\n\n"
+        '#include <math.h>\n\n#include "policy.h"\n\n'
         + "\n".join(tables)
         + "\nvoid rlplat_policy(const float obs[RLPLAT_OBS_DIM], float action[RLPLAT_ACT_DIM])\n{\n"
         + "\n".join(buffers)

@@ -235,8 +235,13 @@ class OnnxPolicy:
     """
 
     def __init__(self, model: bytes, obs_dim: int, action_dim: int) -> None:
-        import onnxruntime as ort
-
+        try:
+            import onnxruntime as ort
+        except ImportError:
+            raise ConfigError(
+                "policy: onnx needs onnxruntime, which is not installed; "
+                "pip install 'rlplat[export]'"
+            ) from None
         options = ort.SessionOptions()
         options.intra_op_num_threads = options.inter_op_num_threads = 1
         options.log_severity_level = 3

@@ -109,16 +109,24 @@ def artifact_files(policy: str, run_dir: Path, ckpt: str, path: Path) -> dict[st
     card_path = where / "card.json"
     if not card_path.is_file():
         raise ConfigError(f"policy: {policy} needs the export in {where}; run `{command}` first")
-    card = json.loads(card_path.read_text())
-    if card["source"]["sha256"] != sha256_bytes(path.read_bytes()):
+    try:
+        card = json.loads(card_path.read_text())
+        exported_from = card["source"]["sha256"]
+        hashes = {name: card["files"][name]["sha256"] for name in ARTIFACT_FILES[policy]}
+    except (ValueError, KeyError, TypeError) as e:
+        raise ConfigError(
+            f"policy: {card_path} is not an export card ({type(e).__name__}: {e}); "
+            f"run `{command}` again"
+        ) from None
+    if exported_from != sha256_bytes(path.read_bytes()):
         raise ConfigError(
             f"policy: the export in {where} is of another checkpoint than {path} (sha256 "
-            f"{card['source']['sha256'][:12]}); run `{command}` again"
+            f"{exported_from[:12]}); run `{command}` again"
         )
     files = {}
     for name in ARTIFACT_FILES[policy]:
         data = (where / name).read_bytes() if (where / name).is_file() else b""
-        if sha256_bytes(data) != card["files"][name]["sha256"]:
+        if sha256_bytes(data) != hashes[name]:
             raise ConfigError(
                 f"policy: {where / name} is missing or not the file the card names; "
                 f"run `{command}` again"
