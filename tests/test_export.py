@@ -426,6 +426,22 @@ def test_evaluating_an_artifact_needs_its_export_as_written(run, exported, tmp_p
     assert not (copy / "eval").exists()
 
 
+def test_an_export_written_elsewhere_flies_from_export_dir(run, exported, tmp_path):
+    out = tmp_path / "elsewhere"
+    card = export_run(run, out_dir=out, min_observations=1000, timing_calls=1000)
+    assert card["out_dir"] == str(out)
+    ev = evaluate_run(run, policy="c", export_dir=out, plots=False, out_dir=tmp_path / "ev")
+    assert ev.summary["artifact"]["dir"] == str(out)
+    assert ev.summary["outcomes_differing_from_torch"] == 0
+    with pytest.raises(ConfigError) as e:
+        evaluate_run(run, policy="c", export_dir=tmp_path / "none", plots=False)
+    assert _one_line(e).endswith(
+        f"run `python export.py run_dir={run} ckpt=best out_dir={tmp_path / 'none'}` first"
+    )
+    with pytest.raises(ConfigError, match=r"^export_dir: is for policy=onnx or c"):
+        evaluate_run(run, policy="checkpoint", export_dir=out)
+
+
 def test_flying_the_onnx_export_without_onnxruntime_is_one_line(monkeypatch):
     monkeypatch.setitem(sys.modules, "onnxruntime", None)  # import fails: not installed
     with pytest.raises(ConfigError) as e:

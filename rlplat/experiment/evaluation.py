@@ -96,16 +96,20 @@ def checkpoint_path(run_dir: Path, ckpt: str) -> Path:
     return path
 
 
-def export_dir(run_dir: Path, ckpt: str, path: Path) -> Path:
+def default_export_dir(run_dir: Path, ckpt: str, path: Path) -> Path:
     """Where ``export.py`` writes the artifacts of checkpoint ``ckpt`` (at ``path``)."""
     return run_dir / "export" / (ckpt if ckpt in CHECKPOINT_NAMES else path.stem)
 
 
-def artifact_files(policy: str, run_dir: Path, ckpt: str, path: Path) -> dict[str, bytes]:
-    """The exported files ``policy`` flies, checked against the export's card: they must be
-    the ones exported from the checkpoint at ``path`` as it is now."""
-    where = export_dir(run_dir, ckpt, path)
-    command = f"python export.py run_dir={run_dir} ckpt={ckpt}"
+def artifact_files(
+    policy: str, run_dir: Path, ckpt: str, path: Path, where: Path | None = None
+) -> dict[str, bytes]:
+    """The exported files ``policy`` flies, from ``where`` (default: where ``export.py``
+    writes them for the run), checked against the export's card: they must be the ones
+    exported from the checkpoint at ``path`` as it is now."""
+    out = "" if where is None else f" out_dir={where}"
+    where = default_export_dir(run_dir, ckpt, path) if where is None else Path(where)
+    command = f"python export.py run_dir={run_dir} ckpt={ckpt}{out}"
     card_path = where / "card.json"
     if not card_path.is_file():
         raise ConfigError(f"policy: {policy} needs the export in {where}; run `{command}` first")
@@ -246,6 +250,7 @@ def evaluate_run(
     ensemble: Sequence[str | Path] = (),
     lone_in_team: bool = False,
     eval_dir: str | Path | None = None,
+    export_dir: str | Path | None = None,
 ) -> Evaluation:
     """Replay every scenario of ``split`` once, deterministically, with the run's policy.
 
@@ -278,6 +283,8 @@ def evaluate_run(
             coordinate. A scripted policy flies the team as always.
         eval_dir: the folder of the run's evaluations that the default ``out_dir`` is in
             (default ``<run_dir>/eval``), e.g. one per scenario set that the run is flown on.
+        export_dir: ``policy=onnx`` or ``c``: the folder of the export to fly (default
+            ``<run_dir>/export/<ckpt>``, where ``export.py`` writes without ``out_dir``).
     """
     # Everything is checked before any work starts.
     run_dir = Path(run_dir)
@@ -299,7 +306,12 @@ def evaluate_run(
     learned = policy == "checkpoint" or policy in ARTIFACTS
     path = checkpoint_path(run_dir, ckpt) if learned else None
     name = (ckpt if ckpt in CHECKPOINT_NAMES else path.stem) if path else policy
-    files = artifact_files(policy, run_dir, ckpt, path) if policy in ARTIFACTS else None
+    if export_dir is not None and policy not in ARTIFACTS:
+        raise ConfigError(f"export_dir: is for policy=onnx or c, got policy={policy}")
+    where = None if export_dir is None else Path(export_dir)
+    files = artifact_files(policy, run_dir, ckpt, path, where) if policy in ARTIFACTS else None
+    if files is not None and where is None:
+        where = default_export_dir(run_dir, ckpt, path)
     if policy == "c":
         compiler = find_compiler(compiler)
     if files is not None:
@@ -373,7 +385,7 @@ def evaluate_run(
             flipped = [d for d in differ if d["torch"]["captured"] != d[policy]["captured"]]
             artifact = {
                 "artifact": {
-                    "dir": str(export_dir(run_dir, ckpt, path)),
+                    "dir": str(where),
                     "files": {k: sha256_bytes(v) for k, v in files.items()},
                 },
                 "torch_capture_rate": reference.capture_rate,
@@ -530,6 +542,8 @@ def evaluate_from_config(cfg: DictConfig) -> list[str]:
     for policy in policies:
         members = list(cfg.ensemble) if policy == cfg.policy else []
         where = {"eval_dir": cfg.out_dir} if cfg.compare else {"out_dir": cfg.out_dir}
+        if policy == cfg.policy:
+            where["export_dir"] = cfg.export_dir
         ev = evaluate_run(cfg.run_dir, policy=policy, ensemble=members, **where, **kwargs)
         s = ev.summary
         low, high = s["capture_rate_ci95"]

@@ -64,7 +64,7 @@ from rlplat.experiment.evaluation import (
     check_policy_fits,
     check_scenarios,
     checkpoint_path,
-    export_dir,
+    default_export_dir,
     load_run_config,
 )
 from rlplat.experiment.factory import build_eval_env, resolve_scenarios
@@ -111,7 +111,7 @@ def run_source(run_dir: Path, ckpt: str, out_dir, scenarios_dir) -> Source:
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
     digest = summary.get("scenario_digest") or state.get("scenario_digest")
     described = {"run_dir": str(run_dir), "checkpoint": ckpt, "frames": _frames(state)}
-    out = Path(out_dir) if out_dir is not None else export_dir(run_dir, ckpt, path)
+    out = Path(out_dir) if out_dir is not None else default_export_dir(run_dir, ckpt, path)
     chosen = scenarios_dir or cfg.get("scenarios_dir")
     return Source(state, path, sha, cfg, out, chosen, digest, described)
 

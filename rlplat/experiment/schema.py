@@ -284,6 +284,7 @@ EVALUATE_RULES: dict[str, Rule] = {
     "run_dir": Text(),
     "policy": Choice(POLICIES),
     "ckpt": Text(),  # best | last | a checkpoint path
+    "export_dir": Text(null=True),
     "split": Choice(SPLITS),
     "compare": flag,
     "strict_scenarios": flag,
@@ -444,6 +445,10 @@ def _check_evaluate_fields(c: Mapping[str, Any]) -> None:
     if c["policy"] in SCRIPTED and c["ckpt"] != "best":
         raise ConfigError(
             f"ckpt: {show(c['ckpt'])} is for policy=checkpoint, onnx or c, got policy={c['policy']}"
+        )
+    if c["export_dir"] is not None and c["policy"] not in ("onnx", "c"):
+        raise ConfigError(
+            f"export_dir: {show(c['export_dir'])} is for policy=onnx or c, got policy={c['policy']}"
         )
     if c["ensemble"] and c["policy"] != "checkpoint":
         raise ConfigError(
