@@ -441,6 +441,20 @@ def test_a_simulator_whose_continue_answers_before_its_time_has_run_is_waited_fo
         env.close()
 
 
+def test_a_simulator_without_the_checking_calls_flies_with_a_warning(scenarios, caplog):
+    # listVehicles and simIsPaused only check; a simulator that lacks them still flies.
+    with TestServer(SETTINGS) as srv:
+        del srv._methods["listVehicles"], srv._methods["simIsPaused"]
+        with caplog.at_level("WARNING", logger="rlplat.envs.airsim.client"):
+            env = airsim_env(scenarios, srv.address)
+            env.reset()
+            env.rand_step()
+        assert env.dynamics.last_advance_s == pytest.approx(PERIOD, abs=1e-9)
+        assert "has no listVehicles: vehicles Attacker, Defender not checked" in caplog.text
+        assert caplog.text.count("has no simIsPaused") == 1
+        env.close()
+
+
 # Faults: one line each, within a bounded time ----------------------------------------------
 
 

@@ -404,6 +404,7 @@ class AirSimClient:
         self.connect_timeout_s, self.timeout_s = float(connect_timeout_s), float(timeout_s)
         self._api, self._field = None, "dynamics.timeout_s"
         self._moves: dict[str, Any] = {}  # the last move sent to each vehicle
+        self._no_is_paused = False  # the simulator lacks simIsPaused
         try:
             import cosysairsim
         except ImportError:
@@ -557,8 +558,8 @@ class AirSimClient:
     def pause(self, paused: bool = True) -> None:
         """Pause (or release) the simulation and check that it took."""
         self.call("simPause", "pausing", self._api.simPause, bool(paused))
-        now = self.call("simIsPaused", "pause state", self._api.simIsPause)
-        if bool(now) != bool(paused):
+        now = self.is_paused("pause state")
+        if now is not None and bool(now) != bool(paused):
             raise AirSimError(f"simulator at {self.address}: simPause({paused}) did not take")
 
     def reset(self) -> None:
@@ -612,13 +613,27 @@ class AirSimClient:
             raise ValueError(f"seconds must be > 0, got {seconds!r}")
         self.call("simContinueForTime", what, self._api.simContinueForTime, float(seconds))
 
+    def is_paused(self, what: str) -> bool | None:
+        """Whether the simulation is paused (``simIsPaused``); None from a simulator without
+        that call (logged once)."""
+        if self._no_is_paused:
+            return None
+        try:
+            return bool(self.call("simIsPaused", what, self._api.simIsPause))
+        except AirSimError as e:
+            if NO_FUNCTION not in str(e):
+                raise
+            self._no_is_paused = True
+            log.warning("simulator at %s has no simIsPaused: pauses are not checked", self.address)
+            return None
+
     def wait_paused(self, what: str) -> bool:
         """Wait until the simulation is paused again (``simIsPaused``), within ``timeout_s``:
         for a simulator whose ``simContinueForTime`` answers before its time has run. True if
         it was still running."""
         deadline = time.monotonic() + self.timeout_s
         running = False
-        while not self.call("simIsPaused", what, self._api.simIsPause):
+        while self.is_paused(what) is False:
             running = True
             if time.monotonic() > deadline:
                 raise AirSimError(
