@@ -427,9 +427,12 @@ def test_evaluating_an_artifact_needs_its_export_as_written(run, exported, tmp_p
 
 
 def test_an_export_written_elsewhere_flies_from_export_dir(run, exported, tmp_path):
-    out = tmp_path / "elsewhere"
-    card = export_run(run, out_dir=out, min_observations=1000, timing_calls=1000)
-    assert card["out_dir"] == str(out)
+    out = tmp_path / "elsewhere"  # with its own C names, which the evaluator calls
+    card = export_run(run, out_dir=out, prefix="pursuer", min_observations=1000,
+                      timing_calls=1000)  # fmt: skip
+    assert card["out_dir"] == str(out) and card["interface"]["c_api"].startswith(
+        "void pursuer_policy(const float obs[PURSUER_OBS_DIM]"
+    )
     ev = evaluate_run(run, policy="c", export_dir=out, plots=False, out_dir=tmp_path / "ev")
     assert ev.summary["artifact"]["dir"] == str(out)
     assert ev.summary["outcomes_differing_from_torch"] == 0
@@ -470,6 +473,56 @@ def test_the_shipped_defender_network_exports(scenarios, tmp_path):
     x = torch.randn(256, 12) * 10
     c_policy, _ = build_library((out / "policy.h").read_text(), source, 12, 3)
     assert np.abs(c_policy(x.numpy()) - actor(x).numpy()).max() <= 1e-5
+
+
+TWO_CONTROLLERS = r"""#include <stdio.h>
+#include "attacker/policy.h"
+#include "defender/policy.h"
+
+int main(void)
+{
+    float a_obs[ATTACKER_OBS_DIM], a_act[ATTACKER_ACT_DIM];
+    float d_obs[DEFENDER_OBS_DIM], d_act[DEFENDER_ACT_DIM];
+    int i;
+    for (i = 0; i < ATTACKER_OBS_DIM; ++i) a_obs[i] = (float)(i % 5) - 2.0f;
+    for (i = 0; i < DEFENDER_OBS_DIM; ++i) d_obs[i] = 3.0f - (float)(i % 7);
+    attacker_policy(a_obs, a_act);
+    defender_policy(d_obs, d_act);
+    for (i = 0; i < ATTACKER_ACT_DIM; ++i) printf("%.9g\n", a_act[i]);
+    for (i = 0; i < DEFENDER_ACT_DIM; ++i) printf("%.9g\n", d_act[i]);
+    return 0;
+}
+"""
+
+
+def test_two_controllers_with_their_own_prefixes_link_into_one_program(run, tmp_path):
+    # An attacker and the shipped defender, side by side in one C program, as generated.
+    actors = {
+        "attacker": DeterministicActor.from_state(load_checkpoint(run / "checkpoints/best.pt")),
+        "defender": DeterministicActor.from_state(load_checkpoint(shipped_path(SHIPPED_DEFENDER))),
+    }
+    objects = []
+    for prefix, actor in actors.items():
+        header, source = c_sources(actor, prefix=prefix)
+        assert f"void {prefix}_policy(const float obs[{prefix.upper()}_OBS_DIM]" in header
+        assert "rlplat_policy" not in header + source and "RLPLAT_" not in header + source
+        (tmp_path / prefix).mkdir()
+        (tmp_path / prefix / "policy.h").write_text(header)
+        (tmp_path / prefix / "policy.c").write_text(source)
+        objects.append(f"{prefix}.o")
+        subprocess.run(["cc", *C_FLAGS, "-Werror", "-c", f"{prefix}/policy.c", "-o", objects[-1]],
+                       cwd=tmp_path, check=True)  # fmt: skip
+    (tmp_path / "main.c").write_text(TWO_CONTROLLERS)
+    subprocess.run(["cc", *C_FLAGS, "-Werror", "main.c", *objects, "-lm", "-o", "both"],
+                   cwd=tmp_path, check=True)  # fmt: skip
+    out = subprocess.run([str(tmp_path / "both")], capture_output=True, text=True, check=True)
+    got = np.array([float(v) for v in out.stdout.split()])
+    a_obs = torch.tensor([float(i % 5) - 2.0 for i in range(actors["attacker"].obs_dim)])
+    d_obs = torch.tensor([3.0 - float(i % 7) for i in range(actors["defender"].obs_dim)])
+    expected = torch.cat([actors["attacker"](a_obs[None])[0], actors["defender"](d_obs[None])[0]])
+    assert got.shape == expected.shape and np.abs(got - expected.numpy()).max() <= 1e-5
+    with pytest.raises(ConfigError, match=r"^prefix: '9lives' does not start C names"):
+        c_sources(actors["attacker"], prefix="9lives")
 
 
 def test_a_team_run_exports_and_flies_one_call_per_drone(tmp_path, write_set, short_run):

@@ -11,7 +11,8 @@
   network (source locations, doc strings).
 - :func:`c_sources`: ``policy.h`` and ``policy.c``, C99 with the weights as ``static const``
   arrays, no heap and no library function but ``tanhf``/``expm1f`` of libm; the API is
-  ``void rlplat_policy(const float obs[RLPLAT_OBS_DIM], float action[RLPLAT_ACT_DIM])``.
+  ``void rlplat_policy(const float obs[RLPLAT_OBS_DIM], float action[RLPLAT_ACT_DIM])``
+  (another ``prefix`` than ``rlplat`` renames the function, the macros and the guard).
 
 The generator knows the layers in :data:`C_LAYERS`; any other layer is refused, naming it.
 """
@@ -21,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import re
 import textwrap
 import warnings
 from collections.abc import Sequence
@@ -45,8 +47,26 @@ C_LAYERS: dict[type[nn.Module], str] = {
 }
 #: The ONNX opset the models are written in.
 ONNX_OPSET = 20
-#: The one function ``policy.h`` declares.
-C_API = "void rlplat_policy(const float obs[RLPLAT_OBS_DIM], float action[RLPLAT_ACT_DIM]);"
+#: The prefix of the C names unless the export says otherwise.
+C_PREFIX = "rlplat"
+_C_IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,23}")
+
+
+def c_api(prefix: str = C_PREFIX) -> str:
+    """The one function ``policy.h`` declares, its names starting with ``prefix``."""
+    p = prefix.upper()
+    return f"void {prefix}_policy(const float obs[{p}_OBS_DIM], float action[{p}_ACT_DIM]);"
+
+
+def check_prefix(prefix: Any, field: str = "prefix") -> str:
+    """``prefix`` if it makes C identifiers (a letter or ``_``, then letters, digits or ``_``;
+    at most 24 characters); otherwise a one-line :class:`ConfigError` naming ``field``."""
+    if not isinstance(prefix, str) or not _C_IDENTIFIER.fullmatch(prefix):
+        raise ConfigError(
+            f"{field}: {prefix!r} does not start C names (a letter or _, then letters, digits "
+            "or _, at most 24 characters)"
+        )
+    return prefix
 
 
 def observation_key(group: str | None) -> str | tuple[str, str]:
@@ -250,12 +270,17 @@ VELOCITY_ACTION = "in [-1, 1]; times the drone's maximum speed per axis, the vel
 
 
 def c_sources(
-    actor: DeterministicActor, describe: Sequence[str] = (), action: str = VELOCITY_ACTION
+    actor: DeterministicActor,
+    describe: Sequence[str] = (),
+    action: str = VELOCITY_ACTION,
+    prefix: str = C_PREFIX,
 ) -> tuple[str, str]:
     """``policy.h`` and ``policy.c`` of ``actor``: C99, weights as ``static const float``, no
     heap, only ``tanhf``/``expm1f`` from libm. ``describe``: comment lines for the header (the
     observation layout, where the network came from); ``action``: what the action is, next to
-    the function's declaration.
+    the function's declaration; ``prefix``: of the external names (``<prefix>_policy``, the
+    macros ``<PREFIX>_OBS_DIM``, ``<PREFIX>_ACT_DIM`` and the include guard), so that two
+    controllers link into one program.
 
     Each Linear layer computes ``y[j] = b[j] + sum_i W[i][j] x[i]`` with the weights stored
     input-major, so that the inner loop runs over contiguous outputs (which compilers
@@ -266,6 +291,7 @@ def c_sources(
     """
     layers = actor.layers()
     obs_dim, act_dim = actor.obs_dim, actor.action_dim
+    p = check_prefix(prefix).upper()
     header = (
         _comment(
             [
@@ -275,22 +301,22 @@ def c_sources(
                 *describe,
             ]
         )
-        + "#ifndef RLPLAT_POLICY_H\n#define RLPLAT_POLICY_H\n\n"
-        f"#define RLPLAT_OBS_DIM  {obs_dim}   /* the run's observation size */\n"
-        f"#define RLPLAT_ACT_DIM  {act_dim}\n\n"
+        + f"#ifndef {p}_POLICY_H\n#define {p}_POLICY_H\n\n"
+        f"#define {p}_OBS_DIM  {obs_dim}   /* the run's observation size */\n"
+        f"#define {p}_ACT_DIM  {act_dim}\n\n"
         '#ifdef __cplusplus\nextern "C" {\n#endif\n\n'
         "/* obs: the observation exactly as the env emits it (SI units, the order above).\n"
         + "".join(f" * {line}\n" for line in textwrap.wrap(f"action: {action}", 76))
         + " * A NaN observation gives NaN actions (an infinite one may), as the torch actor\n"
         " * does: check them before flying the command (not so under -ffast-math, which\n"
         " * may turn them into finite actions: check the observation there). */\n"
-        f"{C_API}\n\n"
-        "#ifdef __cplusplus\n}\n#endif\n\n#endif /* RLPLAT_POLICY_H */\n"
+        f"{c_api(prefix)}\n\n"
+        f"#ifdef __cplusplus\n}}\n#endif\n\n#endif /* {p}_POLICY_H */\n"
     )
 
     tables = [
         "/* 1 / the observation's typical magnitudes: the network sees obs * INV_SCALE */\n"
-        f"static const float INV_SCALE[RLPLAT_OBS_DIM] = {{\n"
+        f"static const float INV_SCALE[{p}_OBS_DIM] = {{\n"
         f"{_c_array(actor.inv_scale.numpy())}\n}};\n"
     ]
     body = [f"    for (i = 0; i < {obs_dim}; ++i) x0[i] = obs[i] * INV_SCALE[i];"]
@@ -336,7 +362,7 @@ def c_sources(
     gain = _c_float(np.float32(1.0 + actor.action_margin).item())
     body += [
         f"    /* the squashed mean: clamp({gain} * tanh(loc), -1, 1) */",
-        "    for (j = 0; j < RLPLAT_ACT_DIM; ++j) {",
+        f"    for (j = 0; j < {p}_ACT_DIM; ++j) {{",
         f"        const float a = {gain} * tanhf(x{k}[j]);",
         "        action[j] = a < -1.0f ? -1.0f : (a > 1.0f ? 1.0f : a);",
         "    }",
@@ -354,7 +380,7 @@ def c_sources(
         "#endif\n\n"
         '#include <math.h>\n\n#include "policy.h"\n\n'
         + "\n".join(tables)
-        + "\nvoid rlplat_policy(const float obs[RLPLAT_OBS_DIM], float action[RLPLAT_ACT_DIM])\n{\n"
+        + f"\n{c_api(prefix)[:-1]}\n{{\n"
         + "\n".join(buffers)
         + "\n    int i, j;\n\n"
         + "\n".join(body)

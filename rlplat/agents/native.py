@@ -3,7 +3,8 @@ model in ONNX Runtime, their timing, and both as policies the evaluator flies.
 
 - :func:`find_compiler`, :func:`build_library`: ``policy.c`` built with the system C compiler
   (``cc -O2 -std=c99 -ffp-contract=off -shared -fPIC ... -lm``) into a shared library, loaded
-  as a :class:`CPolicy` that calls ``rlplat_policy`` once per observation row, the way
+  as a :class:`CPolicy` that calls ``rlplat_policy`` (or ``<prefix>_policy``, as its
+  ``policy.h`` declares) once per observation row, the way
   firmware calls it.
 - :class:`OnnxPolicy`: an ONNX Runtime session on one CPU thread, batched.
 - :func:`time_c`: a generated C ``main`` that times single calls with ``clock_gettime``
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import ctypes
 import platform
+import re
 import shutil
 import subprocess
 import tempfile
@@ -36,6 +38,15 @@ from rlplat.errors import ConfigError
 #: Flags of every build: optimised, strict C99, no fused multiply-adds or other math shortcuts
 #: (each sum is rounded as written).
 C_FLAGS = ("-O2", "-std=c99", "-ffp-contract=off", "-Wall", "-Wextra", "-pedantic")
+
+
+def c_prefix(header: str) -> str:
+    """The prefix of the C names a generated ``policy.h`` declares (``rlplat`` unless the
+    export named another): its one function is ``<prefix>_policy``."""
+    found = re.search(r"^void (\w+)_policy\(const float obs\[", header, re.MULTILINE)
+    if found is None:
+        raise ConfigError("policy.h: declares no <prefix>_policy function (not an rlplat export)")
+    return found.group(1)
 
 
 def find_compiler(compiler: str = "cc") -> str:
@@ -85,15 +96,17 @@ def write_sources(directory: Path, header: str, source: str) -> Path:
 
 
 class CPolicy:
-    """``rlplat_policy`` of a compiled ``policy.c``, called through ctypes.
+    """``<prefix>_policy`` of a compiled ``policy.c``, called through ctypes.
 
     ``policy(obs)``: obs (B, obs_dim) float32 -> actions (B, action_dim) float32, one C call
     per row.
     """
 
-    def __init__(self, library: Path, obs_dim: int, action_dim: int) -> None:
+    def __init__(
+        self, library: Path, obs_dim: int, action_dim: int, prefix: str = "rlplat"
+    ) -> None:
         self._lib = ctypes.CDLL(str(library))
-        self._fn = self._lib.rlplat_policy
+        self._fn = getattr(self._lib, f"{prefix}_policy")
         self._fn.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
         self._fn.restype = None
         self.obs_dim, self.action_dim = obs_dim, action_dim
@@ -118,7 +131,7 @@ def build_library(
         c_file = write_sources(Path(tmp), header, source)
         library = Path(tmp) / "libpolicy.so"
         diagnostics = _compile(compiler, [c_file], library, "-shared", "-fPIC")
-        return CPolicy(library, obs_dim, action_dim), diagnostics
+        return CPolicy(library, obs_dim, action_dim, c_prefix(header)), diagnostics
 
 
 #: The timing harness: every call timed alone with CLOCK_MONOTONIC after a warm-up, cycling
@@ -209,7 +222,9 @@ def time_c(
     with tempfile.TemporaryDirectory(prefix="rlplat-timing-") as tmp:
         tmp = Path(tmp)
         c_file = write_sources(tmp, header, source)
-        (tmp / "timing.c").write_text(TIMING_MAIN)
+        prefix = c_prefix(header)
+        main = TIMING_MAIN.replace("rlplat_policy", f"{prefix}_policy")
+        (tmp / "timing.c").write_text(main.replace("RLPLAT_", f"{prefix.upper()}_"))
         _compile(compiler, [tmp / "timing.c", c_file], tmp / "timing")
         obs.tofile(tmp / "obs.bin")
         args = [tmp / "timing", tmp / "obs.bin", len(obs), warmup, calls, tmp / "ns.bin"]

@@ -41,10 +41,12 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from rlplat.agents.checkpoint import actor_from_state, load_checkpoint, route_path_interface
 from rlplat.agents.export import (
-    C_API,
+    C_PREFIX,
     VELOCITY_ACTION,
     DeterministicActor,
+    c_api,
     c_sources,
+    check_prefix,
     observation_key,
     onnx_bytes,
 )
@@ -264,7 +266,6 @@ def interface_card(src: Source, env, actor: DeterministicActor, features) -> dic
         "action": action,
         "team": {"attackers": env.num_attackers, "defenders": env.num_defenders,
                  "drones_sharing_the_policy": env.team_size},
-        "c_api": C_API,
     }  # fmt: skip
     path = route_path_interface(env)
     if path is not None:  # the meeting point the caller computes, from this path
@@ -358,9 +359,11 @@ def export_run(
     timing_calls: int = 100_000,
     compiler: str = "cc",
     retime: bool = False,
+    prefix: str = C_PREFIX,
 ) -> dict[str, Any]:
     """Export the policy of ``run_dir``'s checkpoint ``ckpt`` (or of a ``controller`` file) and
-    return its card; see the module docstring for what is written.
+    return its card; see the module docstring for what is written. ``prefix`` starts the C
+    names (``<prefix>_policy``, ``<PREFIX>_OBS_DIM``, ...).
 
     Raises:
         ConfigError: bad input (no such run, checkpoint or tool, another interface, a layer the
@@ -377,6 +380,7 @@ def export_run(
         raise ConfigError(f"out_dir: a controller export needs out_dir, got {out_dir}")
     if split not in SPLITS:
         raise ConfigError(f"split: unknown '{split}'; valid: {', '.join(SPLITS)}")
+    check_prefix(prefix)
     _check_tools()
     compiler = find_compiler(compiler)
     if controller is not None:
@@ -401,7 +405,7 @@ def export_run(
     # The artifacts, in memory.
     features = env.obs_fn.features()
     model = onnx_bytes(actor)
-    header, source = c_sources(actor, describe_lines(src, env, features), action_line(env))
+    header, source = c_sources(actor, describe_lines(src, env, features), action_line(env), prefix)
 
     # Equivalence: torch, ONNX Runtime and C on every observation.
     onnx_policy = OnnxPolicy(model, actor.obs_dim, actor.action_dim)
@@ -440,7 +444,7 @@ def export_run(
             "learner": src.cfg.drone.learner,
             "scenario_digest": src.scenario_digest,
         },
-        "interface": interface_card(src, env, actor, features),
+        "interface": {**interface_card(src, env, actor, features), "c_api": c_api(prefix)},
         "network": network_card(actor, src.state),
         "files": files_card,
         "equivalence": {
@@ -477,6 +481,7 @@ def export_from_config(cfg: DictConfig) -> list[str]:
         timing_calls=cfg.timing_calls,
         compiler=cfg.compiler,
         retime=cfg.retime,
+        prefix=cfg.prefix,
     )
     eq, t = card["equivalence"], card["timing"]
     d = eq["max_abs_action_difference"]

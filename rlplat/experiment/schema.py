@@ -25,7 +25,7 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from rlplat.agents.export import ARTIFACTS
+from rlplat.agents.export import ARTIFACTS, check_prefix
 from rlplat.agents.policies import POLICIES as SCRIPTED
 from rlplat.agents.sac import ACTIVATIONS
 from rlplat.envs.airsim.client import parse_endpoint
@@ -309,6 +309,7 @@ EXPORT_RULES: dict[str, Rule] = {
     "out_dir": Text(null=True),
     "scenarios_dir": Text(null=True),
     "split": Choice(SPLITS),
+    "prefix": Text(),
     "min_observations": COUNT,
     "tolerance": POSITIVE,
     "timing_calls": Num(integer=True, ge=100),
@@ -466,6 +467,7 @@ def _check_export_fields(c: Mapping[str, Any]) -> None:
         raise ConfigError("out_dir: a controller export needs out_dir=DIR, got None")
     if c["controller"] is not None and c["ckpt"] != "best":
         raise ConfigError(f"ckpt: {show(c['ckpt'])} is for run_dir only, not with controller")
+    check_prefix(c["prefix"])
 
 
 # Checking ---------------------------------------------------------------------------------
