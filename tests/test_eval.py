@@ -375,6 +375,16 @@ def test_bad_arguments_are_refused_before_any_work(trained_run, kwargs, message)
     assert not (trained_run / "bad").exists()
 
 
+def test_an_empty_split_is_refused_before_any_work(trained_run, tmp_path, write_small_set):
+    held = write_small_set(tmp_path / "set", "scenario.n_val=0")
+    with pytest.raises(ConfigError) as e:
+        evaluate_run(trained_run, scenarios_dir=held.path, split="val", out_dir=tmp_path / "ev")
+    assert str(e.value) == (
+        f"scenarios_dir: {held.path} has no val scenarios; the evaluation needs the val split"
+    )
+    assert not (tmp_path / "ev").exists()
+
+
 def test_missing_run_directory(tmp_path):
     with pytest.raises(ConfigError, match=r"run_dir: no run directory at .*nowhere"):
         evaluate_run(tmp_path / "nowhere")

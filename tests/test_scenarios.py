@@ -1,4 +1,5 @@
 import dataclasses
+import hashlib
 import json
 import math
 import subprocess
@@ -202,8 +203,32 @@ def test_load_returns_tensors_matching_files(make_spec, tmp_path):
             ("scenario.defender_spread.low=5", "scenario.defender_spread.high=-5"),
             r"scenario.defender_spread: empty or inverted range \[low=5.0, high=-5.0\]",
         ),
+        (
+            ("scenario.params.attacker_max_speed.low=0",),
+            r"scenario.params.attacker_max_speed.low: a maximum speed must be > 0 m/s, got 0.0",
+        ),
+        (
+            ("scenario.params.defender_max_speed.dist=gaussian",
+             "scenario.params.defender_max_speed.mean=nan"),
+            r"scenario.params.defender_max_speed.mean: expected 1 finite numbers, got \[nan\]",
+        ),
+        (
+            ("scenario.params.defender_max_speed.dist=gaussian",
+             "scenario.params.defender_max_speed.mean=abc"),
+            r"scenario.params.defender_max_speed.mean: expected 1 numbers, got \['abc'\]",
+        ),
+        (
+            ("scenario.params.attacker_max_speed.dist=gaussian",
+             "scenario.params.attacker_max_speed.mean=40"),
+            r"scenario.params.attacker_max_speed.mean: must lie in \[low=.*, high=.*\], got 40.0",
+        ),
+        (("scenario.min_distance=nan",), r"scenario.min_distance: expected 1 finite numbers"),
+        (("scenario.min_altitude=abc",), r"scenario.min_altitude: expected 1 numbers, got"),
+        (("scenario.strategy_mix.nn=abc",), r"scenario.strategy_mix.nn: expected 1 numbers"),
+        (("scenario.routes=[5]",), r"scenario.routes\[0\]: expected a list of \[x, y, z\]"),
+        (("scenario.routes=5",), r"scenario.routes: expected a list of routes"),
     ],
-)
+)  # fmt: skip
 def test_bad_config_is_refused_with_one_line(make_spec, overrides, message):
     with pytest.raises(ConfigError, match=message) as e:
         make_spec(*overrides)
@@ -274,6 +299,71 @@ def test_missing_file_and_other_schema_are_refused(make_spec, tmp_path):
         ScenarioSet.load(tmp_path)
     with pytest.raises(ScenarioFileError, match=r"manifest.json: missing file"):
         ScenarioSet.load(tmp_path / "nowhere")
+
+
+def _rewrite(where: Path, split: str, edit) -> None:
+    """Edit the records of ``split`` (``edit(records) -> records``) and hash the file into the
+    manifest again: a hand-made set, as the loader sees it."""
+    path = where / f"{split}.jsonl"
+    records = [json.loads(line) for line in path.read_text().splitlines()]
+    text = "".join(line if isinstance(line, str) else json.dumps(line) + "\n"
+                   for line in edit(records))  # fmt: skip
+    path.write_text(text)
+    manifest = json.loads((where / "manifest.json").read_text())
+    manifest["splits"][split]["sha256"] = hashlib.sha256(text.encode()).hexdigest()
+    (where / "manifest.json").write_text(json.dumps(manifest))
+
+
+def _first(**change):
+    def edit(records):
+        rec = records[0]
+        for key, value in change.items():
+            if value is _first:
+                del rec[key]
+            else:
+                rec[key] = value
+        return records
+
+    return edit
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (_first(attacker_max_speed=_first), r"test.jsonl:1: missing field 'attacker_max_speed'"),
+        (_first(attacker_max_speed=float("nan")),
+         r"test.jsonl:1: attacker_max_speed must be a finite number > 0 \(m/s\), got nan"),
+        (_first(defender_max_speed=-2.0), r"test.jsonl:1: defender_max_speed must be a finite"),
+        (_first(attacker_max_speed="fast"), r"test.jsonl:1: attacker_max_speed must be a finite"),
+        (_first(attacker_start=[1.0, 2.0]),
+         r"test.jsonl:1: attacker_start must be 3 finite numbers \[x, y, z\] m, got \[1.0, 2.0\]"),
+        (_first(route=7), r"test.jsonl:1: route must be a route index in \[0, 3\]"),
+        (_first(defender_strategy="zigzag"),
+         r"test.jsonl:1: defender_strategy 'zigzag' is unknown; valid: setpoints, nn"),
+        (_first(speed=3.0), r"test.jsonl:1: unknown field 'speed'; valid: id, "),
+        (lambda r: [*r[:-1], r[0]], r"test.jsonl:\d+: id 'test-000000' repeats line 1"),
+        (lambda r: r[:-1], r"test.jsonl: \d+ scenarios, the manifest's count says \d+"),
+        (lambda r: ["{not json\n", *r[1:]], r"test.jsonl:1: not a JSON record"),
+    ],
+)  # fmt: skip
+def test_a_hand_made_set_is_checked_record_by_record(make_spec, tmp_path, edit, message):
+    write_scenario_set(make_spec(*SMALL), tmp_path)
+    _rewrite(tmp_path, "test", edit)
+    with pytest.raises(ScenarioFileError, match=message) as e:
+        ScenarioSet.load(tmp_path)
+    assert "\n" not in str(e.value)
+
+
+def test_a_manifest_that_is_not_json_or_lacks_a_split_is_one_line(make_spec, tmp_path):
+    write_scenario_set(make_spec(*SMALL), tmp_path)
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    del manifest["splits"]["val"]
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ScenarioFileError, match=r"manifest.json: splits.val must name its file"):
+        ScenarioSet.load(tmp_path)
+    (tmp_path / "manifest.json").write_text("{")
+    with pytest.raises(ScenarioFileError, match=r"manifest.json: not JSON"):
+        ScenarioSet.load(tmp_path)
 
 
 # k attackers vs m defenders -------------------------------------------------------------

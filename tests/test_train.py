@@ -393,6 +393,22 @@ def test_cli_bad_input_is_one_line_before_any_work(
     assert not (run / "checkpoints").exists()
 
 
+@pytest.mark.parametrize("empty", ["train", "val", "test"])
+def test_a_set_with_an_empty_split_is_refused_before_any_work(
+    tmp_path, write_small_set, empty, tiny, train_cli
+):
+    # A test-only set is a set (an evaluation flies it); training needs all three splits.
+    held = write_small_set(tmp_path / "set", f"scenario.n_{empty}=0")
+    run = tmp_path / "run"
+    res = train_cli(*tiny, f"scenarios_dir={held.path}", f"hydra.run.dir={run}")
+    assert res.returncode == 2
+    assert res.stderr.strip().splitlines()[-1] == (
+        f"error: scenarios_dir: {held.path} has no {empty} scenarios; training needs the "
+        "train/val/test splits"
+    )
+    assert not (run / "checkpoints").exists()
+
+
 def test_cli_unknown_override_is_refused(tmp_path, train_cli):
     res = train_cli("algo.learning_rate=1", f"hydra.run.dir={tmp_path}")
     assert res.returncode != 0 and "learning_rate" in res.stderr

@@ -45,6 +45,7 @@ from rlplat.experiment.factory import (
     build_component,
     build_eval_env,
     eval_num_envs,
+    require_scenarios,
     resolve_scenarios,
 )
 from rlplat.experiment.schema import (
@@ -332,6 +333,7 @@ def evaluate_run(
     expected = run_summary.get("scenario_digest") or (state or {}).get("scenario_digest")
     source = "summary.json" if "scenario_digest" in run_summary else "checkpoint"
     same_set = check_scenarios(scenarios, expected, strict_scenarios, source)
+    require_scenarios(scenarios, [split], "the evaluation")
     n = len(scenarios.split(split))
     # A baseline flies its own velocity commands (eq. 2), not through a learner's action.
     env_cfg = cfg if learned else plain_action(cfg)

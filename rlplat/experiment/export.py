@@ -69,7 +69,7 @@ from rlplat.experiment.evaluation import (
     default_export_dir,
     load_run_config,
 )
-from rlplat.experiment.factory import build_eval_env, resolve_scenarios
+from rlplat.experiment.factory import build_eval_env, require_scenarios, resolve_scenarios
 from rlplat.experiment.schema import validate_export_config
 from rlplat.io import atomic_write_bytes, atomic_write_text, sha256_bytes
 from rlplat.scenarios import SPLITS
@@ -389,6 +389,7 @@ def export_run(
         src = run_source(Path(run_dir), ckpt, out_dir, scenarios_dir)
     scenarios = resolve_scenarios(src.cfg, src.scenarios_dir)
     same_set = check_scenarios(scenarios, src.scenario_digest, False, f"recorded with {src.path}")
+    require_scenarios(scenarios, [split], "the export's rollouts")
     n = len(scenarios.split(split))
     env = build_eval_env(src.cfg, scenarios=scenarios, split=split, num_envs=n)
     check_policy_fits(src.state, src.cfg, env, src.path)

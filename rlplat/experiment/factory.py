@@ -9,7 +9,7 @@ import hashlib
 import json
 import logging
 import os
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -66,6 +66,17 @@ def resolve_scenarios(cfg: DictConfig, scenarios: ScenarioSet | str | os.PathLik
         log.info("generating the configured scenario set into %s", path)
         write_scenario_set(spec, path)
     return ScenarioSet.load(path)
+
+
+def require_scenarios(scenarios: ScenarioSet, splits: Sequence[str], needed_by: str) -> None:
+    """Refuse, in one line, a set with no scenario in one of ``splits`` (a set may leave a
+    split empty, e.g. a test-only set; what flies it may not)."""
+    for split in splits:
+        if len(scenarios.split(split)) == 0:
+            raise ConfigError(
+                f"scenarios_dir: {scenarios.path} has no {split} scenarios; {needed_by} needs "
+                f"the {'/'.join(splits)} split{'s' if len(splits) > 1 else ''}"
+            )
 
 
 def build_env(

@@ -51,11 +51,16 @@ from rlplat.eval.episodes import SCORE_NAME, EpisodeResults, evaluate
 from rlplat.eval.metrics import wilson_interval
 from rlplat.eval.plots import plot_learning_curve
 from rlplat.experiment.evaluation import plain_action
-from rlplat.experiment.factory import build_env, build_eval_env, resolve_scenarios
+from rlplat.experiment.factory import (
+    build_env,
+    build_eval_env,
+    require_scenarios,
+    resolve_scenarios,
+)
 from rlplat.experiment.logger import Metrics, make_logger
 from rlplat.experiment.schema import check_resume, validate_train_config
 from rlplat.io import atomic_write_text
-from rlplat.scenarios import STRATEGIES, ScenarioSet
+from rlplat.scenarios import SPLITS, STRATEGIES, ScenarioSet
 
 log = logging.getLogger(__name__)
 
@@ -132,6 +137,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
 
     # Create the environments
     scenarios = resolve_scenarios(cfg, cfg.scenarios_dir)
+    require_scenarios(scenarios, SPLITS, "training")  # it validates, and tests at its end
     evaders = network_defenders(scenarios, algo.evader_weight)
     demonstration_plays = [checked_plays(cfg, scenarios, path) for path in algo.demonstrations]
     env = build_env(cfg, scenarios=scenarios, split="train", num_envs=algo.num_envs, device=device)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -179,7 +179,7 @@ class ScenarioSpec:
         axes = _floats(raw["vision_semi_axes"], f"{where}.vision_semi_axes", 3)
         if min(axes) <= 0:
             raise ConfigError(f"{where}.vision_semi_axes: must be > 0, got {list(axes)}")
-        min_distance = float(raw["min_distance"])
+        min_distance = _finite(raw["min_distance"], f"{where}.min_distance")
         if min_distance < 0 or min_distance >= max(axes):
             raise ConfigError(
                 f"{where}.min_distance: {min_distance} m cannot be met inside the vision "
@@ -198,8 +198,20 @@ class ScenarioSpec:
                 f"expected {', '.join(PARAM_NAMES)}"
             )
         params = {n: _param(params_raw[n], f"{where}.params.{n}") for n in PARAM_NAMES}
+        for n in ("attacker_max_speed", "defender_max_speed"):
+            if not params[n].low > 0:
+                raise ConfigError(
+                    f"{where}.params.{n}.low: a maximum speed must be > 0 m/s, got {params[n].low}"
+                )
 
-        mix = {str(k): float(v) for k, v in dict(raw["strategy_mix"]).items()}
+        if not isinstance(raw["strategy_mix"], Mapping):
+            raise ConfigError(
+                f"{where}.strategy_mix: expected a mapping of strategy to weight, got "
+                f"{raw['strategy_mix']!r}"
+            )
+        mix = {
+            str(k): _finite(v, f"{where}.strategy_mix.{k}") for k, v in raw["strategy_mix"].items()
+        }
         for k, v in mix.items():
             if k not in STRATEGIES:
                 raise ConfigError(
@@ -210,6 +222,11 @@ class ScenarioSpec:
         if sum(mix.values()) <= 0:
             raise ConfigError(f"{where}.strategy_mix: weights must sum to > 0, got {mix}")
 
+        if not isinstance(raw["routes"], Sequence) or isinstance(raw["routes"], str):
+            raise ConfigError(
+                f"{where}.routes: expected a list of routes (each a list of [x, y, z]), got "
+                f"{raw['routes']!r:.60}"
+            )
         routes = tuple(_route(r, f"{where}.routes[{i}]") for i, r in enumerate(raw["routes"]))
         if not routes:
             raise ConfigError(f"{where}.routes: at least one route is needed")
@@ -244,7 +261,7 @@ class ScenarioSpec:
             seed=_int(raw["seed"], f"{where}.seed", low=0),
             vision_semi_axes=axes,
             min_distance=min_distance,
-            min_altitude=float(raw["min_altitude"]),
+            min_altitude=_finite(raw["min_altitude"], f"{where}.min_altitude"),
             quality_bins=bins,
             params=params,
             strategy_mix=mix,
@@ -277,6 +294,12 @@ def _int(v: Any, where: str, low: int | None = None) -> int:
     return v
 
 
+def _finite(v: Any, where: str) -> float:
+    """``v`` as a finite float; a one-line :class:`ConfigError` naming ``where`` otherwise."""
+    (out,) = _floats([v], where, 1)
+    return out
+
+
 def _floats(v: Any, where: str, n: int) -> tuple[float, ...]:
     try:
         out = tuple(float(x) for x in v)
@@ -306,14 +329,18 @@ def _param(raw: Any, where: str) -> ParamSpec:
     mean = raw.get("mean")
     std = raw.get("std")
     if dist == "gaussian":
-        mean = (low + high) / 2 if mean is None else float(mean)
-        std = (high - low) / 6 if std is None else float(std)
+        mean = (low + high) / 2 if mean is None else _finite(mean, f"{where}.mean")
+        std = (high - low) / 6 if std is None else _finite(std, f"{where}.std")
+        if not low <= mean <= high:
+            raise ConfigError(f"{where}.mean: must lie in [low={low}, high={high}], got {mean}")
         if not std > 0:
             raise ConfigError(f"{where}.std: must be > 0 for a gaussian, got {std}")
     return ParamSpec(low=low, high=high, resolution=res, dist=dist, mean=mean, std=std)
 
 
 def _route(raw: Any, where: str) -> tuple[tuple[float, float, float], ...]:
+    if not isinstance(raw, Sequence) or isinstance(raw, str):
+        raise ConfigError(f"{where}: expected a list of [x, y, z] setpoints, got {raw!r:.60}")
     pts = tuple(_floats(p, f"{where}[{i}]", 3) for i, p in enumerate(raw))
     if not pts:
         raise ConfigError(f"{where}: a route needs at least one setpoint")

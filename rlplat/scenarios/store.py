@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -64,6 +66,114 @@ def _jsonl(spec: ScenarioSpec, cols: SplitColumns) -> bytes:
             ]
         lines.append(json.dumps(rec))
     return "".join(line + "\n" for line in lines).encode("utf-8")
+
+
+#: The fields of a record, and of its extra drones' entries.
+RECORD_FIELDS = ("id", "defender_start", "attacker_start", "route", "defender_strategy",
+                 "defender_max_speed", "attacker_max_speed")  # fmt: skip
+EXTRA_ATTACKER_FIELDS = ("start", "max_speed")
+EXTRA_DEFENDER_FIELDS = ("start", "route", "defender_strategy", "max_speed")
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _check_fields(rec: Any, fields: Sequence[str], optional: Sequence[str], at: str) -> None:
+    if not isinstance(rec, dict):
+        raise ScenarioFileError(f"{at}: not a JSON object: {rec!r:.60}")
+    missing = [f for f in fields if f not in rec]
+    if missing:
+        raise ScenarioFileError(f"{at}: missing field {missing[0]!r}")
+    unknown = [f for f in rec if f not in fields and f not in optional]
+    if unknown:
+        raise ScenarioFileError(
+            f"{at}: unknown field {unknown[0]!r}; valid: {', '.join((*fields, *optional))}"
+        )
+
+
+def _check_drone(rec: dict, start: str, speed: str, at: str, n_routes: int | None = None,
+                 route: str = "route", strategy: str = "defender_strategy") -> None:  # fmt: skip
+    """One drone's start (3 finite numbers, m), maximum speed (finite, > 0, m/s) and, for a
+    defender (``n_routes``), route index and strategy name."""
+    p = rec[start]
+    if not (isinstance(p, list) and len(p) == 3 and all(_number(x) for x in p)):
+        raise ScenarioFileError(
+            f"{at}: {start} must be 3 finite numbers [x, y, z] m, got {p!r:.60}"
+        )
+    v = rec[speed]
+    if not (_number(v) and v > 0):
+        raise ScenarioFileError(f"{at}: {speed} must be a finite number > 0 (m/s), got {v!r:.30}")
+    if n_routes is None:
+        return
+    r = rec[route]
+    if not (isinstance(r, int) and not isinstance(r, bool) and 0 <= r < n_routes):
+        raise ScenarioFileError(
+            f"{at}: {route} must be a route index in [0, {n_routes - 1}] (the manifest's "
+            f"config.routes), got {r!r:.30}"
+        )
+    if rec[strategy] not in STRATEGIES:
+        raise ScenarioFileError(
+            f"{at}: {strategy} {rec[strategy]!r:.30} is unknown; valid: {', '.join(STRATEGIES)}"
+        )
+
+
+def check_record(rec: Any, spec: ScenarioSpec, at: str) -> None:
+    """A scenario record as :func:`_jsonl` writes it for ``spec``'s k attackers and m
+    defenders: its fields, no others, each of the right type and range.
+
+    Raises:
+        ScenarioFileError: one line naming ``at`` (file:line), the field and its value.
+    """
+    k, m, n_routes = spec.attackers, spec.defenders, len(spec.routes)
+    optional = (("extra_attackers",) if k > 1 else ()) + (("extra_defenders",) if m > 1 else ())
+    _check_fields(rec, RECORD_FIELDS + optional, (), at)
+    if not isinstance(rec["id"], str) or not rec["id"]:
+        raise ScenarioFileError(f"{at}: id must be a non-empty string, got {rec['id']!r:.30}")
+    _check_drone(rec, "attacker_start", "attacker_max_speed", at)
+    _check_drone(rec, "defender_start", "defender_max_speed", at, n_routes)
+    for key, count, fields in (("extra_attackers", k - 1, EXTRA_ATTACKER_FIELDS),
+                               ("extra_defenders", m - 1, EXTRA_DEFENDER_FIELDS)):  # fmt: skip
+        if not count:
+            continue
+        extra = rec[key]
+        if not isinstance(extra, list) or len(extra) != count:
+            got = len(extra) if isinstance(extra, list) else repr(extra)[:30]
+            raise ScenarioFileError(
+                f"{at}: {key} must list {count} drone(s) (the manifest's config has "
+                f"{k} attacker(s) and {m} defender(s)), got {got}"
+            )
+        for j, drone in enumerate(extra):
+            where = f"{at}: {key}[{j}]"
+            _check_fields(drone, fields, (), where)
+            _check_drone(drone, "start", "max_speed", where,
+                         n_routes if key == "extra_defenders" else None)  # fmt: skip
+
+
+def _records(data: bytes, spec: ScenarioSpec, where: Path, count: Any) -> list[dict[str, Any]]:
+    """The checked records of one split's file: valid JSON, every record as
+    :func:`check_record` wants it, ids unique, as many as the manifest's ``count``."""
+    try:
+        lines = data.decode("utf-8").splitlines()
+    except UnicodeDecodeError as e:
+        raise ScenarioFileError(f"{where}: not UTF-8 text ({e.reason} at byte {e.start})") from None
+    records, seen = [], {}
+    for number, line in enumerate(lines, 1):
+        at = f"{where}:{number}"
+        try:
+            rec = json.loads(line)
+        except ValueError as e:
+            raise ScenarioFileError(f"{at}: not a JSON record ({e})") from None
+        check_record(rec, spec, at)
+        if rec["id"] in seen:
+            raise ScenarioFileError(f"{at}: id {rec['id']!r} repeats line {seen[rec['id']]}")
+        seen[rec["id"]] = number
+        records.append(rec)
+    if count != len(records):
+        raise ScenarioFileError(
+            f"{where}: {len(records)} scenarios, the manifest's count says {count!r}"
+        )
+    return records
 
 
 def _to_tensors(records: list[dict[str, Any]], spec: ScenarioSpec, where: Path) -> TensorDict:
@@ -166,24 +276,37 @@ class ScenarioSet:
                 differs from the manifest (truncated or edited).
         """
         path = Path(path)
-        manifest = json.loads(_read(path / MANIFEST))
+        try:
+            manifest = json.loads(_read(path / MANIFEST))
+        except ValueError as e:
+            raise ScenarioFileError(f"{path / MANIFEST}: not JSON ({e})") from None
+        if not isinstance(manifest, dict):
+            raise ScenarioFileError(f"{path / MANIFEST}: not a JSON object")
         version = manifest.get("schema_version")
         if version != SCHEMA_VERSION:
             raise ScenarioFileError(
                 f"{path / MANIFEST}: schema_version {version!r} is not supported "
                 f"(this rlplat reads {SCHEMA_VERSION})"
             )
+        for key in ("config", "splits"):
+            if not isinstance(manifest.get(key), dict):
+                raise ScenarioFileError(f"{path / MANIFEST}: missing {key}")
         spec = ScenarioSpec.from_dict(manifest["config"], where=f"{path / MANIFEST}: config")
         ids, splits = {}, {}
         for split in SPLITS:
-            entry = manifest["splits"][split]
+            entry = manifest["splits"].get(split)
+            if not (isinstance(entry, dict) and {"file", "sha256", "count"} <= entry.keys()):
+                raise ScenarioFileError(
+                    f"{path / MANIFEST}: splits.{split} must name its file, sha256 and count, "
+                    f"got {entry!r:.80}"
+                )
             data = _read(path / entry["file"])
             if sha256_bytes(data) != entry["sha256"]:
                 raise ScenarioFileError(
                     f"{path / entry['file']}: sha256 differs from the manifest "
                     "(file truncated or edited since generation)"
                 )
-            records = [json.loads(line) for line in data.decode("utf-8").splitlines()]
+            records = _records(data, spec, path / entry["file"], entry["count"])
             ids[split] = [r["id"] for r in records]
             splits[split] = _to_tensors(records, spec, path / entry["file"])
         routes = torch.tensor(spec.routes, dtype=torch.float32)
