@@ -393,6 +393,17 @@ def test_cli_bad_input_is_one_line_before_any_work(
     assert not (run / "checkpoints").exists()
 
 
+def test_a_budget_under_the_scripted_start_is_the_budget(scenarios, tmp_path, tiny_run, caplog):
+    # train.total_frames bounds the run, the scripted start included: 256 frames, not 1,024.
+    with caplog.at_level("WARNING", logger="rlplat.experiment.training"):
+        summary = tiny_run(scenarios, tmp_path, "algo.init_random_frames=1024")
+    assert summary["frames"] == 256 and summary["updates"] == 0
+    assert "train.total_frames=256 is under algo.init_random_frames=1024" in caplog.text
+    assert (tmp_path / "checkpoints" / "best.pt").is_file()
+    assert (tmp_path / "checkpoints" / "last.pt").is_file()
+    assert "test_capture_rate" in json.loads((tmp_path / "summary.json").read_text())
+
+
 @pytest.mark.parametrize("empty", ["train", "val", "test"])
 def test_a_set_with_an_empty_split_is_refused_before_any_work(
     tmp_path, write_small_set, empty, tiny, train_cli

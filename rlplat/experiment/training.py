@@ -190,7 +190,14 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     start = time.perf_counter() - state.wall_time_s
     deadline = None if cfg.train.max_minutes is None else start + 60.0 * cfg.train.max_minutes
     if scripted_start:
-        prefilled = prefill(buffer, train_env, env, algo)
+        # The scripted start's frames count toward the budget: a fresh run's stops with it.
+        fill = algo.init_random_frames
+        if resume_state is None and cfg.train.total_frames < fill:
+            fill = cfg.train.total_frames
+            log.warning("train.total_frames=%d is under algo.init_random_frames=%d: the run is "
+                        "the scripted start alone, without a gradient update",
+                        cfg.train.total_frames, algo.init_random_frames)  # fmt: skip
+        prefilled = prefill(buffer, train_env, env, algo, fill, deadline)
         if resume_state is None:  # a resumed run has counted those frames already
             state.frames += prefilled
         log.info("replay buffer filled with %d frames of noisy %s (%d transitions)",
@@ -210,14 +217,19 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     if resume_state is None:
         validate(run, state, start)
 
-    # Training loop
+    # Training loop (none when the scripted start spent the budget)
+    spent = state.frames >= cfg.train.total_frames or (
+        deadline is not None and time.perf_counter() >= deadline
+    )
+    if spent:
+        save_checkpoint(run.ckpt_dir / "last.pt", checkpoint(run, state))
     every = cfg.train.eval_every_frames
     next_eval = (state.frames // every + 1) * every
     update_credit, last_val = 0.0, state.best_score if state.best_score >= 0 else float("nan")
     progress = Progress(cfg.train, state, start)
     frames_at_start, session_start = state.frames, time.perf_counter()
     try:
-        for batch in collector:
+        for batch in () if spent else collector:
             t_collected = time.perf_counter()
             state.frames += batch.numel()
             buffer.extend(replay(batch, env.group, algo))
@@ -257,12 +269,6 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
                 save_checkpoint(run.ckpt_dir / "last.pt", checkpoint(run, state))
             progress.update(state, last_val)
             if out_of_budget:
-                if state.frames < cfg.train.total_frames:
-                    log.warning(
-                        "train.max_minutes=%s reached at %d of train.total_frames=%d frames: "
-                        "the run stopped on the clock, so a re-run of this seed may stop elsewhere",
-                        cfg.train.max_minutes, state.frames, cfg.train.total_frames,
-                    )  # fmt: skip
                 break
     except BaseException:
         run.metrics.close()  # what was logged reaches every logger (wandb, TensorBoard)
@@ -270,6 +276,12 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     finally:
         progress.close()
         collector.shutdown()
+    if state.frames < cfg.train.total_frames:
+        log.warning(
+            "train.max_minutes=%s reached at %d of train.total_frames=%d frames: "
+            "the run stopped on the clock, so a re-run of this seed may stop elsewhere",
+            cfg.train.max_minutes, state.frames, cfg.train.total_frames,
+        )  # fmt: skip
 
     # Test the best policy on the test split
     summary = test_best(cfg, run, state, reference, device)
@@ -551,15 +563,19 @@ def replay(batch, group: str | None, algo: DictConfig):
     )
 
 
-def prefill(buffer, train_env, env: PursuitEnv, algo: DictConfig) -> int:
-    """Fill the replay buffer with ``algo.init_random_frames`` frames of the scripted
+def prefill(
+    buffer, train_env, env: PursuitEnv, algo: DictConfig, frames_wanted: int,
+    deadline: float | None = None,
+) -> int:  # fmt: skip
+    """Fill the replay buffer with ``frames_wanted`` frames (whole batches of
+    ``algo.frames_per_batch``; fewer if the clock passes ``deadline``) of the scripted
     ``algo.init_policy`` plus Gaussian noise (``algo.init_noise``, correlated in time by
     ``algo.noise_correlation``); returns the frames."""
     policy = NoisyPolicy(make_scripted_policy(algo.init_policy, env), algo.init_noise,
                          env.action_key, algo.noise_correlation)  # fmt: skip
     steps = algo.frames_per_batch // algo.num_envs
     frames, td = 0, train_env.reset()
-    while frames < algo.init_random_frames:
+    while frames < frames_wanted and (deadline is None or time.perf_counter() < deadline):
         trajectory = []
         for _ in range(steps):  # what a collector does, with a scripted policy
             out, td = train_env.step_and_maybe_reset(policy(td))
