@@ -272,6 +272,15 @@ def test_cli_bad_input_exits_nonzero_and_writes_nothing(tmp_path, args, message)
     assert list(tmp_path.iterdir()) == []
 
 
+def test_cli_an_out_dir_that_cannot_be_made_is_one_line_before_any_work(tmp_path):
+    (tmp_path / "a-file").write_text("")
+    r = _cli("out_dir=a-file/set", *SMALL, cwd=tmp_path)
+    assert r.returncode == 2
+    assert r.stderr.strip() == (
+        "error: out_dir: cannot write the scenario set to a-file/set: Not a directory"
+    )
+
+
 def _tamper(path: Path, how: str) -> None:
     if how == "truncate":
         path.write_bytes(path.read_bytes()[:-40])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -14,7 +15,7 @@ from typing import Any
 import torch
 from tensordict import TensorDict
 
-from rlplat.errors import ScenarioFileError
+from rlplat.errors import ConfigError, ScenarioFileError
 from rlplat.io import atomic_write_bytes, atomic_write_text, sha256_bytes
 from rlplat.scenarios.generator import (
     SPLITS,
@@ -326,7 +327,21 @@ def write_scenario_set(spec: ScenarioSpec, out_dir: str | os.PathLike) -> dict[s
     Everything is generated and checked in memory first; each file is then written atomically,
     the manifest last, so an interrupted write never leaves a set that loads.
     """
-    splits = generate(spec)
+    out = Path(out_dir)
+    made = [p for p in (out, *out.parents) if not p.exists()]
+    try:  # before any work: a folder that cannot be made is one line
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ConfigError(
+            f"out_dir: cannot write the scenario set to {out}: {e.strerror}"
+        ) from None
+    try:
+        splits = generate(spec)
+    except BaseException:
+        for p in made:  # nothing left behind: the folders this call made, still empty
+            with contextlib.suppress(OSError):
+                p.rmdir()
+        raise
     files = {split: _jsonl(spec, cols) for split, cols in splits.items()}
     manifest = {
         "schema_version": SCHEMA_VERSION,
@@ -342,9 +357,13 @@ def write_scenario_set(spec: ScenarioSpec, out_dir: str | os.PathLike) -> dict[s
         },
         "quality": quality_report(spec, splits),
     }
-    out = Path(out_dir)
-    for split, data in files.items():
-        atomic_write_bytes(out / f"{split}.jsonl", data)
-    atomic_write_text(out / MANIFEST, json.dumps(manifest, indent=2) + "\n")
+    try:
+        for split, data in files.items():
+            atomic_write_bytes(out / f"{split}.jsonl", data)
+        atomic_write_text(out / MANIFEST, json.dumps(manifest, indent=2) + "\n")
+    except OSError as e:
+        raise ConfigError(
+            f"out_dir: cannot write the scenario set to {out}: {e.strerror}"
+        ) from None
     log.info("wrote %d scenarios to %s", spec.n_total, out)
     return manifest
