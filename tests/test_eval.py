@@ -274,7 +274,7 @@ def test_compare_mode_writes_under_out_dir_and_leaves_the_run_alone(
     )
     lines = evaluate_from_config(cfg)
     assert sorted(p.name for p in out.iterdir()) == [
-        "compare-val.csv", "compare-val.md", "compare-val.png",
+        "compare-val.csv", "compare-val.md",  # plots=false: no PNG
         "val-best", "val-proportional_navigation", "val-pure_pursuit", "val-route_intercept",
     ]  # fmt: skip
     assert sorted(p.relative_to(trained_run) for p in trained_run.rglob("*")) == before
@@ -283,9 +283,10 @@ def test_compare_mode_writes_under_out_dir_and_leaves_the_run_alone(
     table = (out / "compare-val.md").read_text()
     assert f"(evaluations in `{out}`)" in table.splitlines()[0]
     assert "## Against proportional navigation, scenario by scenario" in table
+    assert "compare-val.png" not in table
     # the module's CLI rewrites the same table from that folder
     res = run_python("-m", "rlplat.eval.compare", str(trained_run), "--split", "val",
-                     "--eval-dir", str(out))  # fmt: skip
+                     "--eval-dir", str(out), "--no-plots")  # fmt: skip
     assert res.returncode == 0, res.stderr[-2000:]
     assert res.stdout.strip() == lines[4].strip()
     assert (out / "compare-val.md").read_text() == table

@@ -373,3 +373,16 @@ def test_compare_sets_policies_against_the_law_only_where_one_game_was_flown(tmp
     _headroom_evaluation(tmp_path, "s0", "best-airsim", "checkpoint", [1, 1, 0, 0, 1],
                          dynamics="airsim")  # fmt: skip
     assert _paired_section(run / "eval", summaries(), "test") == ""
+
+
+def test_route_labels_name_each_routes_direction_also_for_one_setpoint():
+    import torch
+
+    from rlplat.eval.tables import route_labels
+
+    two = torch.tensor(
+        [[[8.0, 5.0, 20.0], [144.0, -5.0, 18.0]], [[5.0, -8.0, 9.0], [-5.0, -144.0, 8.0]]]
+    )
+    assert route_labels(two) == ["+X", "-Y"]
+    one = torch.tensor([[[-3.0, -4.0, 10.0]], [[50.0, 2.0, 10.0]]])  # from the origin
+    assert route_labels(one) == ["-Y", "+X"]

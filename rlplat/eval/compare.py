@@ -180,9 +180,14 @@ def _bound_table(
     return "\n".join(lines)
 
 
-def compare(run_dir: str | Path, split: str = "test", eval_dir: str | Path | None = None) -> str:
+def compare(
+    run_dir: str | Path,
+    split: str = "test",
+    eval_dir: str | Path | None = None,
+    plots: bool = True,
+) -> str:
     """Write ``compare-<split>.{md,csv,png}`` beside a run's evaluations, in ``eval_dir``
-    (default ``<run_dir>/eval``); returns the Markdown table."""
+    (default ``<run_dir>/eval``; the PNG only with ``plots``); returns the Markdown table."""
     run_dir = Path(run_dir)
     out = evaluations_dir(run_dir, eval_dir)
     summaries = load_summaries(run_dir, split, out)
@@ -194,7 +199,8 @@ def compare(run_dir: str | Path, split: str = "test", eval_dir: str | Path | Non
     writer.writeheader()
     writer.writerows(rows)
     atomic_write_text(out / f"compare-{split}.csv", buffer.getvalue())
-    plot_comparison(summaries, out / f"compare-{split}.png")
+    if plots:
+        plot_comparison(summaries, out / f"compare-{split}.png")
     s = summaries[0]
     header = (
         f"# Policies on the {split} split of `{run_dir}`"
@@ -203,7 +209,7 @@ def compare(run_dir: str | Path, split: str = "test", eval_dir: str | Path | Non
         f"{s['scenarios']} scenarios, digest `{s['scenario_digest'][:12]}`; every policy flies "
         "each scenario once, deterministically.\n\n"
     )
-    figure = f"\n\n![capture rate against speed ratio](compare-{split}.png)\n"
+    figure = f"\n\n![capture rate against speed ratio](compare-{split}.png)\n" if plots else "\n"
     ceiling = ceiling_table(summaries)
     if ceiling is not None:
         figure += (
@@ -260,8 +266,10 @@ def main(argv: list[str] | None = None) -> None:
         "--eval-dir", default=None,
         help="the evaluations' folder (evaluate.py compare=true out_dir=...; default RUN_DIR/eval)",
     )  # fmt: skip
+    parser.add_argument("--plots", action=argparse.BooleanOptionalAction, default=True,
+                        help="write compare-<split>.png (default: yes)")  # fmt: skip
     args = parser.parse_args(argv)
-    print(compare(args.run_dir, args.split, args.eval_dir))
+    print(compare(args.run_dir, args.split, args.eval_dir, plots=args.plots))
 
 
 if __name__ == "__main__":

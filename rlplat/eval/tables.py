@@ -19,10 +19,11 @@ from rlplat.scenarios import STRATEGIES, ScenarioSet
 
 
 def route_labels(routes: torch.Tensor) -> list[str]:
-    """A direction per route from its last setpoint: ``+X``, ``-X``, ``+Y`` or ``-Y``."""
+    """A direction per route, its first setpoint to its last (the origin, where a defender
+    starts, to a route of one setpoint): ``+X``, ``-X``, ``+Y`` or ``-Y``."""
     out = []
     for route in routes:
-        end = route[-1, :2] - route[0, :2]
+        end = route[-1, :2] - (route[0, :2] if len(route) > 1 else 0.0)
         axis = int(end.abs().argmax())
         out.append(("+" if end[axis] >= 0 else "-") + "XY"[axis])
     return out

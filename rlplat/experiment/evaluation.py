@@ -560,5 +560,5 @@ def evaluate_from_config(cfg: DictConfig) -> list[str]:
             f"{s['scenarios']} {s['split']} scenarios{differ}, report {ev.out_dir / 'report.md'}"
         )
     if cfg.compare:
-        lines.append(compare(cfg.run_dir, cfg.split, eval_dir=cfg.out_dir))
+        lines.append(compare(cfg.run_dir, cfg.split, eval_dir=cfg.out_dir, plots=cfg.plots))
     return lines
