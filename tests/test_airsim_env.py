@@ -226,13 +226,18 @@ def test_an_answer_that_lacks_a_field_names_it_and_is_never_filled_with_a_defaul
     sim.close()
 
 
+def bin_keys(d: dict) -> dict:
+    """``d`` with every map key packed as msgpack bin (bytes)."""
+    return {k.encode(): bin_keys(v) if isinstance(v, dict) else v for k, v in d.items()}
+
+
 def test_integers_bin_strings_and_integer_keys_are_read_and_error_texts_are_one_line():
     def reply(msgid, method, params):
         answers = {
             "ping": [1, msgid, None, True],
             "listVehicles": [1, msgid, None, [b"Attacker", b"Defender"]],  # bin, not str
-            "getMultirotorState": [1, msgid, None, STATE],
-            "simGetCollisionInfo": [1, msgid, None, {"has_collided": 0, 7: "extra"}],
+            "getMultirotorState": [1, msgid, None, bin_keys(STATE)],
+            "simGetCollisionInfo": [1, msgid, None, {b"has_collided": 0, 7: "extra"}],
             "getSettingsString": [1, msgid, "first line\n  second line", None],
         }
         return [answers[method]]

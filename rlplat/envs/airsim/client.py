@@ -112,6 +112,8 @@ def _field(raw: Any, path: str) -> Any:
     """``raw[k1][k2]...`` for the dotted ``path``; KeyError naming the first key missing."""
     value = raw
     for key in path.split("."):
+        if isinstance(value, dict) and key not in value and key.encode() in value:
+            key = key.encode()  # a server that packs its map keys as bin
         if not isinstance(value, dict) or key not in value:
             raise KeyError(key)
         value = value[key]
@@ -662,7 +664,10 @@ class AirSimClient:
                     f"simulator at {self.address}: its getMultirotorState for {name} ({what}) {e}"
                 ) from None
         for name, raw in zip(names, raw_hits, strict=True):
-            flag = raw.get("has_collided") if isinstance(raw, dict) else None
+            try:
+                flag = _field(raw, "has_collided")
+            except KeyError:
+                flag = None
             if not isinstance(flag, (bool, int)):
                 raise AirSimError(
                     f"simulator at {self.address}: its simGetCollisionInfo for {name} ({what}) "
