@@ -2,6 +2,7 @@
 names them, a resume refuses a changed config, and algo/sac_paper is sac plus its changes."""
 
 import pytest
+import torch
 import yaml
 from omegaconf import OmegaConf
 
@@ -116,12 +117,24 @@ def test_train_valid_overrides(overrides):
         *[[f"policy={p}"] for p in POLICIES],
         *[[f"split={s}"] for s in SPLITS],
         ["ckpt=last", "threads=1", "trajectories=0", "speed_ratio_bins=[1]", "attackers=1"],
-        ["compare=true", "device=cuda:0", "out_dir=null", "scenarios_dir=/some/set"],
+        ["compare=true", "device=cpu", "out_dir=null", "scenarios_dir=/some/set"],
     ],
     ids=lambda o: " ".join(o) or "default",
 )
 def test_evaluate_config_validates(overrides):
     validate_evaluate_config(compose_config("evaluate", ["run_dir=runs/x", *overrides]))
+
+
+def test_a_device_this_machine_lacks_is_one_line_before_any_work():
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    missing = f"cuda:{count}"  # one past the last device there is (cuda:0 on a CPU machine)
+    with pytest.raises(ConfigError) as e:
+        validate_train_config(compose_config("train", [f"train.device={missing}"]))
+    assert str(e.value).startswith(f"train.device: '{missing}' is not available on this machine")
+    with pytest.raises(ConfigError, match=rf"^device: '{missing}' is not available"):
+        validate_evaluate_config(compose_config("evaluate", ["run_dir=x", f"device={missing}"]))
+    if count:
+        validate_train_config(compose_config("train", ["train.device=cuda:0"]))
 
 
 @pytest.mark.parametrize("group", sorted(COMPONENTS))

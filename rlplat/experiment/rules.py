@@ -144,14 +144,22 @@ def flag(value: Any) -> str | None:
 
 
 def device(value: Any) -> str | None:
-    """A torch device string."""
+    """A torch device string, of a device this machine has."""
     try:
-        if isinstance(value, str):
-            torch.device(value)
-            return None
+        dev = torch.device(value) if isinstance(value, str) else None
     except RuntimeError:
-        pass
-    return f"must be a torch device (cpu, cuda, cuda:1, mps, ...), got {show(value)}"
+        dev = None
+    if dev is None:
+        return f"must be a torch device (cpu, cuda, cuda:1, mps, ...), got {show(value)}"
+    if dev.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if not count:
+            return f"{show(value)} is not available on this machine (torch sees no CUDA device)"
+        if dev.index is not None and dev.index >= count:
+            return f"{show(value)} is not available on this machine ({count} CUDA device(s))"
+    if dev.type == "mps" and not torch.backends.mps.is_available():
+        return f"{show(value)} is not available on this machine (no MPS)"
+    return None
 
 
 @dataclass(frozen=True)

@@ -359,6 +359,14 @@ def _learning_drones(c: Mapping[str, Any]) -> int:
 
 def _check_train_fields(c: Mapping[str, Any]) -> None:
     algo, env, learner = c["algo"], c["env"], c["drone"]["learner"]
+    if c["scenarios_dir"] is None:  # the configured set: training flies all three splits
+        for split in ("train", "val", "test"):
+            n = c["scenario"].get(f"n_{split}")
+            if isinstance(n, int) and not isinstance(n, bool) and n == 0:
+                raise ConfigError(
+                    f"scenario.n_{split}: training needs {split} scenarios, got 0 (a set "
+                    "without them is for evaluate.py scenarios_dir=...)"
+                )
     if algo["frames_per_batch"] % algo["num_envs"]:
         raise ConfigError(
             f"algo.frames_per_batch: {algo['frames_per_batch']} is not a multiple of "
