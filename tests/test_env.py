@@ -112,15 +112,22 @@ def test_drone_bundles_pick_their_observation_and_cli_wins(scenarios, drone, dim
 # Specs for every combination -------------------------------------------------------------
 
 
+def _rewards_of(drone: str) -> list[str]:
+    """The rewards of the drone's side: an attacker's eq. 3 and sparse, a defender's evasion."""
+    learner = OmegaConf.load(CONF / "drone" / f"{drone}.yaml").drone.get("learner", "attacker")
+    return ["evasion"] if learner == "defender" else ["shaped", "sparse"]
+
+
 @pytest.mark.parametrize(
     ("drone", "dynamics", "reward"),
-    list(
-        itertools.product(
+    [
+        (drone, dynamics, reward)
+        for drone, dynamics in itertools.product(
             sorted(stems("drone")),
             sorted(set(stems("dynamics")) - {"airsim"}),  # a simulator: test_airsim_env.py
-            ["shaped", "sparse"],
         )
-    ),
+        for reward in _rewards_of(drone)
+    ],
 )
 def test_check_env_specs(scenarios, drone, dynamics, reward):
     env = make_env(
@@ -439,6 +446,23 @@ def test_bad_env_option_is_refused(scenarios):
         make_env("env.scenario_order=backwards", scenarios=scenarios)
     with pytest.raises(ConfigError, match=r"dynamics.name: unknown dynamics 'rocket'; valid"):
         make_env("dynamics.name=rocket", scenarios=scenarios)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (("drone=defender_v1", "reward=sparse"),
+         r"^reward.terms.capture: 10 pays the defender for being caught; a defender's reward"),
+        (("drone=attacker_v3", "reward=evasion"),
+         r"^reward.terms.capture: -50 charges the attacker for catching"),
+        (("drone=attacker_v3", "+reward.terms.route_progress=1"),
+         r"^reward.terms.route_progress: is the defender's route, this run's learner is the "
+         r"attacker"),
+    ],
+)  # fmt: skip
+def test_a_reward_of_the_other_side_is_refused(scenarios, overrides, message):
+    with pytest.raises(ConfigError, match=message):
+        make_env(*overrides, scenarios=scenarios)
 
 
 def test_default_scenarios_are_generated_once_into_the_cache(small_sizes, tmp_path, monkeypatch):

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import replace
 from typing import Literal, NamedTuple, Protocol
 
@@ -121,6 +121,28 @@ class _Sight(NamedTuple):
     team_visible: Tensor  # (N, K) bool, the learner sees (attacker) or is seen (defender)
     distance: Tensor  # (N,) m, the least distance of a pair in play
     visible: Tensor  # (N,) bool, some pair in play in view
+
+
+#: Reward terms that only a defender earns (its route), by name.
+DEFENDER_TERMS = ("route_progress", "setpoint_reached")
+
+
+def check_reward_role(weights: Mapping[str, float], learner: str) -> None:
+    """Refuse, in one line, a reward of the other side: one that pays a defender for being
+    caught (``capture`` > 0), charges an attacker for catching (< 0), or pays an attacker for
+    the defender's route."""
+    capture = float(weights.get("capture", 0.0))
+    if learner == "defender" and capture > 0:
+        raise ConfigError(f"reward.terms.capture: {capture:g} pays the defender for being caught; "
+                          "a defender's reward charges it (< 0, e.g. reward=evasion)")  # fmt: skip
+    if learner == "attacker" and capture < 0:
+        raise ConfigError(f"reward.terms.capture: {capture:g} charges the attacker for catching; "
+                          "an attacker's reward pays it (> 0, e.g. reward=shaped)")  # fmt: skip
+    if learner == "attacker":
+        for term in DEFENDER_TERMS:
+            if weights.get(term, 0.0):
+                raise ConfigError(f"reward.terms.{term}: is the defender's route, this run's "
+                                  "learner is the attacker (e.g. reward=shaped)")  # fmt: skip
 
 
 class PursuitEnv(EnvBase):
@@ -275,6 +297,7 @@ class PursuitEnv(EnvBase):
             self._route_rate = -torch.expm1(-control_period / lag) / control_period
             # the deviation's step towards each new residual size (time constant conformity_time)
             self._conform_blend = -math.expm1(-control_period / observation.conformity_time)
+        check_reward_role(getattr(reward, "weights", {}), learner)
         self.dynamics = dynamics
         self.obs_fn, self.action_fn, self.reward_fn = observation, action, reward
         # Drones: attackers first, then defenders; the learner's role is its team.
