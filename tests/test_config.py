@@ -432,6 +432,7 @@ SAC_PAPER_KEPT = {
     "actor_average": 0.0,
     "anchor_weight": 0.0,
     "failure_weight": 1.0,
+    "failure_evaders_only": False,
     "evader_weight": 1.0,
     "demonstrations": [],
     "demonstration_repeat": 4,

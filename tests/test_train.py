@@ -198,6 +198,28 @@ def test_failure_weight_draws_the_references_failures_more_often(
     )
 
 
+def test_failure_evaders_only_draws_the_references_failures_against_the_network_more_often(
+    scenarios, tmp_path, tiny_run, sampler_weights
+):
+    from rlplat import make_env
+    from rlplat.agents.policies import make_scripted_policy
+    from rlplat.eval.episodes import evaluate
+
+    tiny_run(scenarios, tmp_path, "algo.failure_weight=4", "algo.failure_evaders_only=true",
+             "env.time_limit=10")  # fmt: skip
+    train = scenarios.split("train")
+    n = len(train)
+    env = make_env("env.time_limit=10", "action=velocity", scenarios=scenarios, split="train",
+                   num_envs=n)  # fmt: skip
+    law = evaluate(env, make_scripted_policy("proportional_navigation", env))
+    failed = torch.zeros(n, dtype=torch.bool)
+    failed[law.scenario_index] = ~law.captured
+    evades = train["defender_strategy"][:, 0] == STRATEGIES.index("nn")
+    assert (failed & evades).any() and (failed & ~evades).any(), "failures of both kinds"
+    (weights,) = [w for count, w in sampler_weights if count == n]
+    assert torch.equal(weights, torch.where(failed & evades, 4.0, 1.0))
+
+
 def test_evader_weight_draws_the_network_defenders_more_often(
     scenarios, tmp_path, tiny_run, caplog, sampler_weights
 ):

@@ -188,6 +188,7 @@ TRAIN_RULES: dict[str, Rule] = {
     "algo.anchor_weight": Num(ge=0),
     "algo.actor_average": Num(ge=0, le=1),
     "algo.failure_weight": Num(gt=0),
+    "algo.failure_evaders_only": flag,
     "algo.evader_weight": Num(gt=0),
     "algo.priority_alpha": Num(ge=0, le=1),
     "algo.priority_beta": Num(ge=0, le=1),
@@ -569,6 +570,7 @@ RESUME_FREE: tuple[str, ...] = (
 #: flew: a saved config without such a key, resumed with that value, is the same config.
 ADDED_KEYS: dict[str, Any] = {
     "algo.failure_weight": 1.0,
+    "algo.failure_evaders_only": False,
     "algo.evader_weight": 1.0,
     "algo.priority_alpha": 0.0,
     "algo.priority_beta": 0.4,

@@ -436,7 +436,8 @@ def weight_scenarios(
 
     ``algo.failure_weight``: the scenarios the scripted reference fails (an attacker: no
     capture; a defender: caught; the reference flown once on the train split) are drawn that
-    many times as often; where the reference already succeeds there is little to learn.
+    many times as often; where the reference already succeeds there is little to learn. With
+    ``algo.failure_evaders_only``, only those with a network defender.
     ``algo.evader_weight``: the scenarios with a defender that flies the trained network
     (strategy ``nn``, the one that leaves its route to evade) are drawn that many times as
     often; where a law meets a route flyer on its route, an attacker's learned correction is
@@ -447,6 +448,8 @@ def weight_scenarios(
         flown = fly_reference(cfg, run, "train", device)
         lost = ~flown.captured if run.role == "attacker" else flown.captured
         failed[flown.scenario_index.cpu()] = lost.cpu()
+        if algo.get("failure_evaders_only", False):
+            failed &= evades
     weight = torch.where(failed, algo.failure_weight, 1.0)
     weight = torch.where(evades, algo.evader_weight * weight, weight)
     run.env.sampler.set_weights(weight)
