@@ -413,6 +413,11 @@ def _check_train_fields(c: Mapping[str, Any]) -> None:
             f"{first_update} the first update waits for (algo.batch_size, "
             "algo.init_random_frames x learning drones)"
         )
+    if env["time_limit"] < env["control_period"]:
+        raise ConfigError(
+            f"env.time_limit: {env['time_limit']} s is shorter than one control period "
+            f"(env.control_period={env['control_period']} s)"
+        )
     k, scenario_k = env["attackers"], c["scenario"].get("attackers", 1)
     if k is not None and c["scenarios_dir"] is None and k > scenario_k:
         raise ConfigError(f"env.attackers: {k}, the scenarios have {scenario_k} (at most)")
