@@ -116,10 +116,11 @@ def test_setpoint_follower_flies_the_defender_like_the_scripted_one(write_small_
     setpoint_only = write_small_set(tmp_path, "scenario.strategy_mix.nn=0")
 
     def fly(learner, policy):
-        # eq. 1 and 2 for either learner (attacker_v4's guided action flies attackers only)
-        cfg = compose_config(
-            "train", ["drone=attacker_v3", f"drone.learner={learner}", "env.time_limit=20"]
-        )
+        # eq. 1 and 2 for either learner (attacker_v4's guided action flies attackers only),
+        # each with its side's reward (which changes no flight)
+        reward = "evasion" if learner == "defender" else "shaped"
+        cfg = compose_config("train", ["drone=attacker_v3", f"drone.learner={learner}",
+                                       f"reward={reward}", "env.time_limit=20"])  # fmt: skip
         env = build_env(cfg, scenarios=setpoint_only, split="test", num_envs=16)
         return evaluate(env, make_scripted_policy(policy, env))
 
