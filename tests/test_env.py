@@ -1,4 +1,5 @@
 import itertools
+import re
 from pathlib import Path
 
 import pytest
@@ -460,9 +461,16 @@ def test_bad_env_option_is_refused(scenarios):
          r"attacker"),
     ],
 )  # fmt: skip
-def test_a_reward_of_the_other_side_is_refused(scenarios, overrides, message):
+def test_a_reward_of_the_other_side_is_refused_by_training_and_warned_by_an_env(
+    scenarios, overrides, message, caplog
+):
+    from rlplat.experiment.schema import validate_train_config
+
     with pytest.raises(ConfigError, match=message):
-        make_env(*overrides, scenarios=scenarios)
+        validate_train_config(compose_config("train", list(overrides)))
+    with caplog.at_level("WARNING", logger="rlplat.envs.pursuit"):
+        make_env(*overrides, scenarios=scenarios)  # to fly policies: its reward is unused
+    assert re.search(message[1:], caplog.text)
 
 
 def test_default_scenarios_are_generated_once_into_the_cache(small_sizes, tmp_path, monkeypatch):

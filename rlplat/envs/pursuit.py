@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import replace
@@ -33,6 +34,8 @@ from rlplat.envs.kinematics import (
 )
 from rlplat.errors import ConfigError
 from rlplat.scenarios import STRATEGIES, ScenarioSet
+
+log = logging.getLogger(__name__)
 
 ATTACKER, DEFENDER = 0, 1  # role indices into ROLES (and the drones of a 1-vs-1 env)
 NN = STRATEGIES.index("nn")
@@ -127,22 +130,24 @@ class _Sight(NamedTuple):
 DEFENDER_TERMS = ("route_progress", "setpoint_reached")
 
 
-def check_reward_role(weights: Mapping[str, float], learner: str) -> None:
-    """Refuse, in one line, a reward of the other side: one that pays a defender for being
-    caught (``capture`` > 0), charges an attacker for catching (< 0), or pays an attacker for
-    the defender's route."""
+def reward_role_problem(weights: Mapping[str, float], learner: str) -> str | None:
+    """What makes a reward one of the other side, in one line naming the term, or None: it
+    pays a defender for being caught (``capture`` > 0), charges an attacker for catching
+    (< 0), or pays an attacker for the defender's route. Training refuses it
+    (``validate_train_config``); an env built to fly policies only warns."""
     capture = float(weights.get("capture", 0.0))
     if learner == "defender" and capture > 0:
-        raise ConfigError(f"reward.terms.capture: {capture:g} pays the defender for being caught; "
-                          "a defender's reward charges it (< 0, e.g. reward=evasion)")  # fmt: skip
+        return (f"reward.terms.capture: {capture:g} pays the defender for being caught; a "
+                "defender's reward charges it (< 0, e.g. reward=evasion)")  # fmt: skip
     if learner == "attacker" and capture < 0:
-        raise ConfigError(f"reward.terms.capture: {capture:g} charges the attacker for catching; "
-                          "an attacker's reward pays it (> 0, e.g. reward=shaped)")  # fmt: skip
+        return (f"reward.terms.capture: {capture:g} charges the attacker for catching; an "
+                "attacker's reward pays it (> 0, e.g. reward=shaped)")  # fmt: skip
     if learner == "attacker":
         for term in DEFENDER_TERMS:
             if weights.get(term, 0.0):
-                raise ConfigError(f"reward.terms.{term}: is the defender's route, this run's "
-                                  "learner is the attacker (e.g. reward=shaped)")  # fmt: skip
+                return (f"reward.terms.{term}: is the defender's route, this run's learner is "
+                        "the attacker (e.g. reward=shaped)")  # fmt: skip
+    return None
 
 
 class PursuitEnv(EnvBase):
@@ -297,7 +302,9 @@ class PursuitEnv(EnvBase):
             self._route_rate = -torch.expm1(-control_period / lag) / control_period
             # the deviation's step towards each new residual size (time constant conformity_time)
             self._conform_blend = -math.expm1(-control_period / observation.conformity_time)
-        check_reward_role(getattr(reward, "weights", {}), learner)
+        problem = reward_role_problem(getattr(reward, "weights", {}), learner)
+        if problem is not None:
+            log.warning("%s", problem)
         self.dynamics = dynamics
         self.obs_fn, self.action_fn, self.reward_fn = observation, action, reward
         # Drones: attackers first, then defenders; the learner's role is its team.

@@ -32,7 +32,7 @@ from rlplat.envs.airsim.client import parse_endpoint
 from rlplat.envs.airsim.dynamics import TIME_MISMATCH
 from rlplat.envs.components import ACTIONS, OBSERVATIONS, REWARD_TERMS
 from rlplat.envs.dynamics import DYNAMICS
-from rlplat.envs.pursuit import ORDERS, ROLES
+from rlplat.envs.pursuit import ORDERS, ROLES, reward_role_problem
 from rlplat.errors import ConfigError
 from rlplat.experiment.logger import BACKENDS
 from rlplat.experiment.rules import (
@@ -360,6 +360,9 @@ def _learning_drones(c: Mapping[str, Any]) -> int:
 
 def _check_train_fields(c: Mapping[str, Any]) -> None:
     algo, env, learner = c["algo"], c["env"], c["drone"]["learner"]
+    problem = reward_role_problem(c["reward"]["terms"], learner)
+    if problem is not None:  # training on it would learn the other side's game
+        raise ConfigError(problem)
     if c["scenarios_dir"] is None:  # the configured set: training flies all three splits
         for split in ("train", "val", "test"):
             n = c["scenario"].get(f"n_{split}")
