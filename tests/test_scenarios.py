@@ -363,6 +363,15 @@ def test_a_hand_made_set_is_checked_record_by_record(make_spec, tmp_path, edit, 
     assert "\n" not in str(e.value)
 
 
+def test_a_hand_made_set_may_hold_blank_lines(make_spec, tmp_path):
+    write_scenario_set(make_spec(*SMALL), tmp_path)
+    before = ScenarioSet.load(tmp_path)
+    _rewrite(tmp_path, "test", lambda r: [r[0], "\n", *r[1:], "  \n"])
+    after = ScenarioSet.load(tmp_path)
+    assert after.ids["test"] == before.ids["test"]
+    assert (after.split("test") == before.split("test")).all()
+
+
 def test_a_manifest_that_is_not_json_or_lacks_a_split_is_one_line(make_spec, tmp_path):
     write_scenario_set(make_spec(*SMALL), tmp_path)
     manifest = json.loads((tmp_path / "manifest.json").read_text())

@@ -152,14 +152,16 @@ def check_record(rec: Any, spec: ScenarioSpec, at: str) -> None:
 
 
 def _records(data: bytes, spec: ScenarioSpec, where: Path, count: Any) -> list[dict[str, Any]]:
-    """The checked records of one split's file: valid JSON, every record as
-    :func:`check_record` wants it, ids unique, as many as the manifest's ``count``."""
+    """The checked records of one split's file (blank lines skipped): valid JSON, every
+    record as :func:`check_record` wants it, ids unique, as many as the manifest's ``count``."""
     try:
         lines = data.decode("utf-8").splitlines()
     except UnicodeDecodeError as e:
         raise ScenarioFileError(f"{where}: not UTF-8 text ({e.reason} at byte {e.start})") from None
     records, seen = [], {}
     for number, line in enumerate(lines, 1):
+        if not line.strip():  # a blank line holds no record
+            continue
         at = f"{where}:{number}"
         try:
             rec = json.loads(line)
