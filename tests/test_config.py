@@ -48,11 +48,12 @@ def test_every_group_has_options():
 
 
 # What an option needs besides the defaults: AirSim flies one env per simulator; no scripted
-# start can be flown through an action that sets the guidance law.
+# start can be flown through an action that sets the guidance law; a reward is its side's.
 NEEDS = {
     "dynamics=airsim": ["algo.num_envs=1"],
     "action=guidance_law": ["algo.init_policy=random"],
     "action=augmented_law": ["algo.init_policy=random"],
+    "reward=evasion": ["drone=defender_v1"],  # the defender's reward
 }
 
 
