@@ -103,13 +103,12 @@ def default_export_dir(run_dir: Path, ckpt: str, path: Path) -> Path:
 
 
 def artifact_files(
-    policy: str, run_dir: Path, ckpt: str, path: Path, where: Path | None = None
+    policy: str, run_dir: Path, ckpt: str, path: Path, where: Path
 ) -> dict[str, bytes]:
-    """The exported files ``policy`` flies, from ``where`` (default: where ``export.py``
-    writes them for the run), checked against the export's card: they must be the ones
-    exported from the checkpoint at ``path`` as it is now."""
-    out = "" if where is None else f" out_dir={where}"
-    where = default_export_dir(run_dir, ckpt, path) if where is None else Path(where)
+    """The exported files ``policy`` flies, from the export folder ``where``, checked against
+    the export's card: they must be the ones exported from the checkpoint at ``path`` as it
+    is now."""
+    out = "" if where == default_export_dir(run_dir, ckpt, path) else f" out_dir={where}"
     command = f"python export.py run_dir={run_dir} ckpt={ckpt}{out}"
     card_path = where / "card.json"
     if not card_path.is_file():
@@ -309,10 +308,10 @@ def evaluate_run(
     name = (ckpt if ckpt in CHECKPOINT_NAMES else path.stem) if path else policy
     if export_dir is not None and policy not in ARTIFACTS:
         raise ConfigError(f"export_dir: is for policy=onnx or c, got policy={policy}")
-    where = None if export_dir is None else Path(export_dir)
-    files = artifact_files(policy, run_dir, ckpt, path, where) if policy in ARTIFACTS else None
-    if files is not None and where is None:
-        where = default_export_dir(run_dir, ckpt, path)
+    files = where = None
+    if policy in ARTIFACTS:
+        where = default_export_dir(run_dir, ckpt, path) if export_dir is None else Path(export_dir)
+        files = artifact_files(policy, run_dir, ckpt, path, where)
     if policy == "c":
         compiler = find_compiler(compiler)
     if files is not None:
