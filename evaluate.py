@@ -4,14 +4,18 @@ Rebuilds env and policy from the run directory and replays every scenario of the
 conf/evaluate.yaml. ``compare=true`` also flies the classical baselines and writes the table.
 """
 
-import hydra
 from omegaconf import DictConfig
 
-from rlplat.cli import exit_on_error
+from rlplat.cli import hydra_main
 
 
-@hydra.main(config_path="conf", config_name="evaluate", version_base="1.3")
-@exit_on_error
+def check(cfg: DictConfig) -> None:
+    from rlplat.experiment.schema import validate_evaluate_config
+
+    validate_evaluate_config(cfg)
+
+
+@hydra_main("evaluate", check)
 def main(cfg: DictConfig) -> None:
     from rlplat.experiment.evaluation import evaluate_from_config
 

@@ -5,14 +5,18 @@ Writes ``DIR/export/<ckpt>/``: ``policy.onnx``, ``policy.h`` + ``policy.c`` (C99
 timing); see conf/export.yaml. ``controller=FILE out_dir=DIR`` exports a controller file.
 """
 
-import hydra
 from omegaconf import DictConfig
 
-from rlplat.cli import exit_on_error
+from rlplat.cli import hydra_main
 
 
-@hydra.main(config_path="conf", config_name="export", version_base="1.3")
-@exit_on_error
+def check(cfg: DictConfig) -> None:
+    from rlplat.experiment.schema import validate_export_config
+
+    validate_export_config(cfg)
+
+
+@hydra_main("export", check)
 def main(cfg: DictConfig) -> None:
     from rlplat.experiment.export import export_from_config
 

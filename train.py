@@ -3,14 +3,18 @@
 Every config group can be swapped from the command line (see conf/train.yaml); ``-m`` sweeps.
 """
 
-import hydra
 from omegaconf import DictConfig
 
-from rlplat.cli import exit_on_error
+from rlplat.cli import hydra_main
 
 
-@hydra.main(config_path="conf", config_name="train", version_base="1.3")
-@exit_on_error
+def check(cfg: DictConfig) -> None:
+    from rlplat.experiment.schema import validate_train_config
+
+    validate_train_config(cfg)
+
+
+@hydra_main("train", check)
 def main(cfg: DictConfig) -> None:
     from rlplat.experiment import train
 

@@ -6,6 +6,7 @@ import torch
 import yaml
 from omegaconf import OmegaConf
 
+from rlplat.cli import check_command_line
 from rlplat.errors import ConfigError
 from rlplat.experiment.config import CONF_DIR, compose_config
 from rlplat.experiment.schema import (
@@ -458,3 +459,49 @@ def test_sac_paper_is_sac_plus_its_changes():
 def test_a_drone_bundle_still_sets_sac_paper_values():
     algo = resolved("algo=sac_paper", "drone=defender_v1")["algo"]
     assert algo["init_policy"] == "setpoint_follower" and algo["num_envs"] == 1
+
+
+# The command line, before Hydra starts (rlplat.cli.check_command_line): one line per mistake.
+@pytest.mark.parametrize(
+    "argv, line",
+    [
+        (["algo.gama=0.9"], "algo.gama: no such setting (did you mean algo.gamma? "),
+        (["observation.nope.x=1"], "observation.nope: no such setting (observation has name, "),
+        (
+            ["drone=attacker_v99"],
+            "drone=attacker_v99: no such option (valid: attacker_v1, "
+            "attacker_v2, attacker_v3, attacker_v4, attacker_v5, attacker_v6, attacker_v7, "
+            "attacker_v8, attacker_v9, attacker_v10, ",
+        ),  # fmt: skip
+        (["hydra/launcher=nope"], "hydra/launcher=nope: no such option (valid: basic, cluster, "),
+        (["algo.gamma=[1"], "algo.gamma=[1: no viable alternative at input '[1'"),
+        (["seed=0,1"], "Ambiguous value for argument 'seed=0,1' "),  # a sweep without -m
+        (["-m", "seed=0,-1"], "seed: must be an integer in [0, 4294967295], got -1"),
+        (["-m", "seed=0,1", "algo.gamma=0.9,2"], "algo.gamma: must be a finite number in [0, 1)"),
+    ],
+)
+def test_a_bad_command_line_is_one_line_before_hydra_starts(argv, line):
+    with pytest.raises(ConfigError) as e:
+        check_command_line("train", argv, validate_train_config)
+    assert str(e.value).startswith(line) and "\n" not in str(e.value)
+
+
+def test_every_job_of_a_sweep_is_checked():
+    seen = []
+    check_command_line("train", ["-m", "seed=0,1,2", "algo=sac,sac_paper"], seen.append)
+    assert sorted((c.seed, c.algo.name) for c in seen) == [
+        (s, a) for s in (0, 1, 2) for a in ("sac", "sac_paper")
+    ]
+    # Past MAX_CHECKED_JOBS combinations, each swept value once (the others at their first).
+    seen.clear()
+    gammas = [0.9, 0.95, 0.99, 0.995, 0.999, 0.9995, 0.9999, 0.99995]
+    sweep = ["-m", "seed=range(0,9)", "algo.gamma=" + ",".join(map(str, gammas))]
+    check_command_line("train", sweep, seen.append)
+    assert len(seen) == 9 + 8
+    assert {c.seed for c in seen} == set(range(9))
+    assert {c.algo.gamma for c in seen} == set(gammas)
+    # Hydra's own questions are Hydra's to answer.
+    seen.clear()
+    check_command_line("train", ["--help"], seen.append)
+    check_command_line("train", ["-m", "drone=glob(attacker_v1*)"], seen.append)
+    assert seen == []

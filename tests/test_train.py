@@ -442,11 +442,22 @@ def test_a_set_with_an_empty_split_is_refused_before_any_work(
     assert not (run / "checkpoints").exists()
 
 
-def test_cli_unknown_override_is_refused(tmp_path, train_cli):
-    res = train_cli("algo.learning_rate=1", f"hydra.run.dir={tmp_path}")
-    assert res.returncode != 0 and "learning_rate" in res.stderr
-    res = train_cli("algo=ppo", f"hydra.run.dir={tmp_path}")
-    assert res.returncode != 0 and "sac_paper" in res.stderr  # lists the available options
+def test_cli_unknown_override_is_refused_in_one_line_before_any_work(tmp_path, train_cli):
+    run = tmp_path / "run"
+    res = train_cli("algo.learning_rate=1", f"hydra.run.dir={run}")
+    assert res.returncode == 2 and res.stderr.startswith("error: algo.learning_rate: no such ")
+    res = train_cli("algo=ppo", f"hydra.run.dir={run}")
+    assert res.returncode == 2
+    assert res.stderr == "error: algo=ppo: no such option (valid: sac, sac_paper)\n"
+    assert not run.exists()  # Hydra made no run directory
+
+
+def test_a_sweep_with_one_bad_job_starts_none(tmp_path, train_cli):
+    sweep = tmp_path / "sweep"
+    res = train_cli("-m", "seed=0,-1", f"hydra.sweep.dir={sweep}")
+    assert res.returncode == 2
+    assert res.stderr == "error: seed: must be an integer in [0, 4294967295], got -1\n"
+    assert not sweep.exists()
 
 
 @pytest.mark.slow

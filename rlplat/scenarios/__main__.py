@@ -2,18 +2,23 @@
 
 from __future__ import annotations
 
-import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from rlplat.cli import exit_on_error
-from rlplat.experiment.config import CONF_DIR
+from rlplat.cli import hydra_main
+from rlplat.errors import ConfigError
 from rlplat.scenarios import ScenarioSpec, format_quality, write_scenario_set
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="scenarios", version_base="1.3")
-@exit_on_error
+def spec_of(cfg: DictConfig) -> ScenarioSpec:
+    """The set a composed ``conf/scenarios.yaml`` asks for; one line if it cannot be made."""
+    if OmegaConf.is_missing(cfg, "out_dir"):
+        raise ConfigError("out_dir: missing (???); give out_dir=DIR, the folder for the set")
+    return ScenarioSpec.from_dict(OmegaConf.to_container(cfg.scenario, resolve=True))
+
+
+@hydra_main("scenarios", spec_of)
 def main(cfg: DictConfig) -> None:
-    spec = ScenarioSpec.from_dict(OmegaConf.to_container(cfg.scenario, resolve=True))
+    spec = spec_of(cfg)
     manifest = write_scenario_set(spec, cfg.out_dir)
     counts = ", ".join(f"{s} {v['count']}" for s, v in manifest["splits"].items())
     print(f"scenario set (seed {spec.seed}): {counts} -> {cfg.out_dir}")
