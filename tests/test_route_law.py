@@ -75,6 +75,25 @@ def test_the_meeting_point_is_the_earliest_point_of_the_path_reached_in_time():
     assert all(torch.equal(a, b) for a, b in zip(one, shared, strict=True))
 
 
+def test_a_longer_look_ahead_meets_a_slow_attacker_further_along_the_route():
+    # The law's horizon only adds instants: a point found within 60 s is the same point, and
+    # an attacker too slow to meet the defender within 60 s may meet it further along.
+    g = torch.Generator().manual_seed(3)
+    n = 512
+    own, other = torch.rand(n, 3, generator=g) * 160 - 80, torch.rand(n, 3, generator=g) * 20
+    route = torch.rand(n, 6, 3, generator=g) * 160 - 80
+    own_speed = torch.rand(n, generator=g) * 2 + 0.5
+    other_speed = torch.rand(n, generator=g) * 4 + 1
+    args = (own, own_speed, other, route, other_speed)
+    near = route_intercept(*args, times=route_times(60.0), lag=0.5, reach=1.2)
+    far = route_intercept(*args, times=route_times(120.0), lag=0.5, reach=1.2)
+    assert (far[2] | ~near[2]).all()
+    assert torch.equal(far[0][near[2]], near[0][near[2]])
+    assert torch.equal(far[1][near[2]], near[1][near[2]])
+    later = far[2] & ~near[2]
+    assert later.sum() >= 10 and (far[1][later] > 60.0).all()
+
+
 def test_a_setpoints_defender_is_never_ahead_of_its_route_path(tmp_path, write_small_set):
     # The path has no velocity lag and no slowing down near a setpoint: a defender of the
     # ``setpoints`` strategy reaches each setpoint no earlier than the path does, give or take
@@ -286,7 +305,11 @@ def test_the_start_up_lag_moves_the_meeting_later():
     assert (due_lag[both] >= due[both]).all() and (due_lag[both] > due[both]).any()
 
 
-@pytest.mark.parametrize("law", [{}, V12_LAW], ids=["default", "attacker_v12"])
+@pytest.mark.parametrize(
+    "law",
+    [{}, V12_LAW, {**V12_LAW, "horizon": 120.0}],
+    ids=["default", "attacker_v12", "looking_120_s_ahead"],
+)
 def test_a_zero_correction_flies_the_route_intercept_law(scenarios, law):
     n = len(scenarios.split("val"))
     plain = make_env(PLAIN, scenarios=scenarios, num_envs=n, split="val")
@@ -294,6 +317,7 @@ def test_a_zero_correction_flies_the_route_intercept_law(scenarios, law):
     law_env = make_env(PLAIN, "action=route_law", *knobs, scenarios=scenarios, num_envs=n,
                        split="val")  # fmt: skip
     assert law_env.meeting_lag == law.get("start_lag", 0.0)
+    assert law_env.meeting_horizon == law.get("horizon", 60.0)  # the time limit by default
     route = make_scripted_policy("route_intercept", plain, **law)
     a, b = plain.reset(), law_env.reset()
     running = torch.ones(n, dtype=torch.bool)  # past its episode's end, an env is not compared
@@ -465,7 +489,7 @@ def test_the_meeting_point_is_an_attackers(scenarios, option):
         make_env("drone=defender_v1", option, scenarios=scenarios, num_envs=2)
 
 
-@pytest.mark.parametrize("key", ["homing_time", "start_lag"])
+@pytest.mark.parametrize("key", ["homing_time", "start_lag", "horizon"])
 def test_the_route_law_refuses_a_negative_time(scenarios, key):
     with pytest.raises(ConfigError, match=rf"^action.{key}: .*-1"):
         make_env(V10, f"action.{key}=-1", scenarios=scenarios, num_envs=2)
@@ -561,3 +585,24 @@ def test_the_gated_bundle_starts_from_its_law_and_states_the_gate_in_its_card(sc
     assert "gate(d) = clamp((d - 1.5) / 1, 0, 1)" in card["unit"]
     assert any(line.startswith("GATED") for line in env.action_fn.describe())
     assert "gate" not in make_env(V11, scenarios=scenarios, num_envs=2).action_fn.card()["guidance"]
+
+
+def test_a_checkpoint_flies_only_with_the_look_ahead_it_was_trained_with():
+    from types import SimpleNamespace
+
+    from rlplat.agents.checkpoint import check_route_path, route_path_interface
+
+    def env(horizon):
+        return SimpleNamespace(computes_meeting=True, route_flight=setpoint_flight(1.0, 1.0),
+                               meeting_lag=0.5, meeting_horizon=horizon, max_steps=600,
+                               control_period=0.1)  # fmt: skip
+
+    trained = {"interface": {"route_path": route_path_interface(env(120.0))}}
+    check_route_path(trained, env(120.0), "best.pt", "evaluate")
+    with pytest.raises(ConfigError, match=r"'horizon': 120.0}, this env's .*'horizon': 60.0}"):
+        check_route_path(trained, env(60.0), "best.pt", "evaluate")
+    # Saved before the look-ahead was a setting: the law looked as far as the time limit.
+    del trained["interface"]["route_path"]["horizon"]
+    check_route_path(trained, env(60.0), "best.pt", "evaluate")
+    with pytest.raises(ConfigError, match="'horizon': 60.0}, this env's"):
+        check_route_path(trained, env(120.0), "best.pt", "evaluate")

@@ -62,11 +62,12 @@ def saved_interface(state: dict[str, Any]) -> dict[str, Any]:
 
 
 def route_path_interface(env) -> dict[str, float] | None:
-    """The defender's path an env's meeting point assumes, and the attacker's start-up lag it
-    allows for (None: it computes none)."""
+    """The defender's path an env's meeting point assumes, the attacker's start-up lag it
+    allows for and how far ahead it looks (None: it computes none)."""
     if not env.computes_meeting:
         return None
-    return {**asdict(env.route_flight), "start_lag": env.meeting_lag}
+    lag, horizon = env.meeting_lag, env.meeting_horizon
+    return {**asdict(env.route_flight), "start_lag": lag, "horizon": horizon}
 
 
 def check_route_path(state: dict[str, Any], env, path, where: str) -> None:
@@ -76,8 +77,10 @@ def check_route_path(state: dict[str, Any], env, path, where: str) -> None:
     if now is None:
         return
     saved = saved_interface(state).get("route_path")
-    if saved is not None:  # saved before the start-up lag was a setting: there was none
+    if saved is not None:  # saved before the start-up lag, the look-ahead were settings
+        horizon = env.max_steps * env.control_period  # the run's own time limit, as now
         saved = {**saved, "start_lag": saved.get("start_lag", 0.0)}
+        saved["horizon"] = saved.get("horizon", horizon)
     if saved is None:
         log.warning("%s: %s saved no route path; its meeting point is flown with %s, which may "
                     "not be the one it was trained with", where, path, now)  # fmt: skip

@@ -38,6 +38,7 @@ from rlplat.envs.kinematics import (
     follow_route,
     gather_drones,
     intercept_action,
+    law_horizon,
     law_times,
     nearest,
     route_law,
@@ -194,6 +195,7 @@ class RouteIntercept(ProportionalNavigation):
             radius, :func:`~rlplat.envs.kinematics.setpoint_flight`; the default, without lags).
         homing_time: s, switch to proportional navigation when the meeting is this close.
         start_lag: s, the attacker's start-up lag the meeting point allows for.
+        horizon: s, how far ahead it looks for a meeting point (None: ``time_limit``).
         gain, lead, max_lead_time: as :class:`ProportionalNavigation`.
 
     Made by name (``make_scripted_policy``), it flies the law of the env's action where that
@@ -213,13 +215,15 @@ class RouteIntercept(ProportionalNavigation):
         flight: SetpointFlight | None = None,
         homing_time: float = 2.0,
         start_lag: float = 0.0,
+        horizon: float | None = None,
         **pn: Any,
     ) -> None:
         super().__init__(**pn)
         times = law_times("route_intercept", homing_time=homing_time, start_lag=start_lag)
+        horizon = law_horizon("route_intercept", horizon)
         self.register_buffer("routes", routes.float())
         self.register_buffer("scenario_routes", scenario_routes.long())
-        self.register_buffer("times", route_times(time_limit))
+        self.register_buffer("times", route_times(time_limit if horizon is None else horizon))
         self.capture_radius = float(capture_radius)
         self.homing_time, self.start_lag = times["homing_time"], times["start_lag"]
         self.flight = SetpointFlight() if flight is None else flight

@@ -13,7 +13,14 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from rlplat.envs.kinematics import aim_velocity, intercept_action, law_times, route_law, targets
+from rlplat.envs.kinematics import (
+    aim_velocity,
+    intercept_action,
+    law_horizon,
+    law_times,
+    route_law,
+    targets,
+)
 from rlplat.errors import ConfigError
 
 
@@ -666,12 +673,15 @@ class RouteLawAction(GuidedVelocityAction):
             the policy saw it): the correction is scaled by ``clamp((deviation - gate_low) /
             (gate_high - gate_low), 0, 1)``, so a defender that keeps its route is met by the
             law alone and one that leaves it gets the whole correction. 0 and 0: no gate.
+        horizon: s, how far ahead the law looks for a meeting point (None: the episode's time
+            limit). Past it the law chases (proportional navigation); a longer look finds a
+            point further along the route for an attacker too slow to meet the defender sooner.
     """
 
     name = "route_law"
     reads_route = True  # the env passes the meeting point with the guidance
     #: The law's own settings: what the ``route_intercept`` baseline flies with to be this law.
-    law_args = ("homing_time", "start_lag")
+    law_args = ("homing_time", "start_lag", "horizon")
     corrects = ("the route-intercept law", "law")
 
     def __init__(
@@ -685,10 +695,12 @@ class RouteLawAction(GuidedVelocityAction):
         start_lag: float = 0.0,
         gate_low: float = 0.0,
         gate_high: float = 0.0,
+        horizon: float | None = None,
     ) -> None:
         super().__init__(gain=gain, lead=lead, max_lead_time=max_lead_time, scale=scale)
         times = law_times("action", homing_time=homing_time, start_lag=start_lag)
         self.homing_time, self.start_lag = times["homing_time"], times["start_lag"]
+        self.horizon = law_horizon("action", horizon)
         for name, v in (("gate_low", gate_low), ("gate_high", gate_high)):
             if not v >= 0:
                 raise ConfigError(f"action.{name}: must be >= 0, got {v}")
@@ -780,6 +792,7 @@ class RouteLawAction(GuidedVelocityAction):
             "max_lead_time": self.max_lead_time,
             "homing_time": self.homing_time,
             "start_lag": self.start_lag,
+            "horizon": self.horizon,
         }
 
     def describe(self) -> list[str]:
@@ -788,7 +801,8 @@ class RouteLawAction(GuidedVelocityAction):
             f"command is clamp(law + {self.scale:g} * action, -1, 1) x max speed per axis; the",
             "law flies to the earliest point of the defender's route-flying path it can reach",
             f"after a {self.start_lag:g}-s start-up lag (gain {self.gain:g}/s) and holds there",
-            f"until the defender is due within {self.homing_time:g} s,",
+            f"until the defender is due within {self.homing_time:g} s (meeting points up to",
+            f"{'the time limit' if self.horizon is None else f'{self.horizon:g} s'} ahead),",
             f"then proportional navigation (lead {self.lead:g}, max lead time "
             f"{self.max_lead_time:g} s; rlplat.envs.kinematics.route_law).",
             *(

@@ -335,6 +335,17 @@ def route_times(time_limit: float, device=None) -> Tensor:
     return torch.arange(1, steps + 1, device=device) * ROUTE_RESOLUTION
 
 
+def law_horizon(where: str, horizon: float | None) -> float | None:
+    """The route-intercept law's look-ahead (s) as a float, or None (the episode's time limit);
+    a one-line error naming ``where.horizon`` for one that is not a finite number > 0."""
+    if horizon is None:
+        return None
+    number = isinstance(horizon, (int, float)) and not isinstance(horizon, bool)
+    if not (number and 0 < horizon < math.inf):
+        raise ConfigError(f"{where}.horizon: must be a number > 0 (s) or null, got {horizon!r}")
+    return float(horizon)
+
+
 def law_times(where: str, **times: float) -> dict[str, float]:
     """The route-intercept law's times (s) as floats; a one-line error naming ``where.key`` for
     one that is negative or not finite."""

@@ -64,6 +64,7 @@ SHARED = (
     "pursuit_gain",
     "route_flight",
     "meeting_lag",
+    "meeting_horizon",
     "computes_meeting",
     "defender_network",
     "drone_action_spec",

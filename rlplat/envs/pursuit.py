@@ -324,7 +324,6 @@ class PursuitEnv(EnvBase):
         self.control_period = float(control_period)
         self.max_steps = math.ceil(time_limit / control_period - 1e-9)
         self.capture_radius = float(capture_radius)
-        self._route_times = route_times(self.max_steps * self.control_period, self.device)
         self._meeting: tuple[Tensor, Tensor, Tensor] | None = None  # set by every output
         self._deviation_seen: Tensor | None = None  # each attacker's, set by every output
         self.ground_altitude = float(ground_altitude)
@@ -333,10 +332,14 @@ class PursuitEnv(EnvBase):
         self.setpoint_acceptance = float(setpoint_acceptance)
         self.setpoint_gain, self.pursuit_gain = float(setpoint_gain), float(pursuit_gain)
         #: How :meth:`meeting` expects a route-flying defender to fly, the attacker's start-up
-        #: lag it allows for (s, the route law's ``start_lag``), and whether every step
-        #: computes the meeting point (the action or the observation reads it).
+        #: lag it allows for (s, the route law's ``start_lag``), how far ahead it looks (s, the
+        #: law's ``horizon``; the time limit by default), and whether every step computes the
+        #: meeting point (the action or the observation reads it).
         self.route_flight = setpoint_flight(self.setpoint_gain, self.setpoint_acceptance)
         self.meeting_lag = float(getattr(action, "start_lag", 0.0))
+        horizon = getattr(action, "horizon", None)  # the route law's look-ahead, s
+        self.meeting_horizon = self.max_steps * self.control_period if horizon is None else horizon
+        self._route_times = route_times(self.meeting_horizon, self.device)
         self.computes_meeting = meets
         self.sampler = ScenarioSampler(
             len(self.scenarios), scenario_order, self.device, scenario_share

@@ -465,7 +465,8 @@ def baseline_args(policy: str, cfg: DictConfig) -> dict[str, float]:
     action = cfg.get("action") or {}
     if policy != "route_intercept" or action.get("name") != "route_law":
         return {}
-    return {k: float(action[k]) for k in ACTIONS["route_law"].law_args if k in action}
+    law = ACTIONS["route_law"].law_args
+    return {k: float(action[k]) for k in law if action.get(k) is not None}
 
 
 def plain_action(cfg: DictConfig) -> DictConfig:

@@ -273,7 +273,7 @@ def interface_card(src: Source, env, actor: DeterministicActor, features) -> dic
             "model": "rlplat.envs.kinematics.route_path (velocity lag, setpoint gain, acceptance), "
             "from the defender's position, velocity, maximum speed and route ahead; the meeting "
             "point is its earliest point the attacker reaches at full speed per axis after "
-            "start_lag s (rlplat.envs.kinematics.route_intercept)",
+            "start_lag s, within horizon s from now (rlplat.envs.kinematics.route_intercept)",
             **path,
         }
     if getattr(env.obs_fn, "reads_conformity", False):  # features the caller computes, with state

@@ -270,6 +270,7 @@ ACTION_KNOBS: dict[str, Rule] = {
     "correction_reach": NON_NEGATIVE,
     "homing_time": NON_NEGATIVE,
     "start_lag": NON_NEGATIVE,
+    "horizon": Num(gt=0, null=True),
     "gate_low": NON_NEGATIVE,
     "gate_high": NON_NEGATIVE,
 }
