@@ -6,7 +6,7 @@ conf/evaluate.yaml. ``compare=true`` also flies the classical baselines and writ
 
 from omegaconf import DictConfig
 
-from rlplat.cli import hydra_main
+from rlplat.experiment.command_line import hydra_main
 
 
 def check(cfg: DictConfig) -> None:

@@ -7,7 +7,7 @@ timing); see conf/export.yaml. ``controller=FILE out_dir=DIR`` exports a control
 
 from omegaconf import DictConfig
 
-from rlplat.cli import hydra_main
+from rlplat.experiment.command_line import hydra_main
 
 
 def check(cfg: DictConfig) -> None:

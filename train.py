@@ -5,7 +5,7 @@ Every config group can be swapped from the command line (see conf/train.yaml); `
 
 from omegaconf import DictConfig
 
-from rlplat.cli import hydra_main
+from rlplat.experiment.command_line import hydra_main
 
 
 def check(cfg: DictConfig) -> None:

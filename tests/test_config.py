@@ -6,8 +6,8 @@ import torch
 import yaml
 from omegaconf import OmegaConf
 
-from rlplat.cli import check_command_line
 from rlplat.errors import ConfigError
+from rlplat.experiment.command_line import check_command_line
 from rlplat.experiment.config import CONF_DIR, compose_config
 from rlplat.experiment.schema import (
     COMPONENTS,
@@ -385,6 +385,13 @@ def test_a_run_saved_before_a_key_existed_resumes_with_its_neutral_value():
     # Any other value is a change, named as one.
     with pytest.raises(ConfigError, match=r"action\.accel_lead \(absent -> 0\.9\)"):
         check_resume(saved, resolved("drone=attacker_v7", "resume=true"))
+    # The route law's later settings: a run of the default drone saved before them resumes.
+    saved = resolved("drone=attacker_v10")
+    for key in ("start_lag", "gate_low", "gate_high", "horizon"):
+        del saved["action"][key]
+    check_resume(saved, resolved("drone=attacker_v10", "resume=true"))
+    with pytest.raises(ConfigError, match=r"action\.horizon \(absent -> 120\)"):
+        check_resume(saved, resolved("drone=attacker_v10", "action.horizon=120", "resume=true"))
 
 
 def test_check_resume_names_added_and_removed_keys():
@@ -461,11 +468,11 @@ def test_a_drone_bundle_still_sets_sac_paper_values():
     assert algo["init_policy"] == "setpoint_follower" and algo["num_envs"] == 1
 
 
-# The command line, before Hydra starts (rlplat.cli.check_command_line): one line per mistake.
+# The command line, before Hydra starts (rlplat.experiment.command_line): one line per mistake.
 @pytest.mark.parametrize(
     "argv, line",
     [
-        (["algo.gama=0.9"], "algo.gama: no such setting (did you mean algo.gamma? "),
+        (["algo.gama=0.9"], "algo.gama: no such setting (did you mean algo.gamma?)"),
         (["observation.nope.x=1"], "observation.nope: no such setting (observation has name, "),
         (
             ["drone=attacker_v99"],
@@ -478,6 +485,9 @@ def test_a_drone_bundle_still_sets_sac_paper_values():
         (["seed=0,1"], "Ambiguous value for argument 'seed=0,1' "),  # a sweep without -m
         (["-m", "seed=0,-1"], "seed: must be an integer in [0, 4294967295], got -1"),
         (["-m", "seed=0,1", "algo.gamma=0.9,2"], "algo.gamma: must be a finite number in [0, 1)"),
+        (["hydra.mode=MULTIRUN", "seed=0,-1"], "seed: must be an integer in [0, 4294967295]"),
+        (["env.time_limit.x=1"], "env.time_limit.x: no such setting (env.time_limit has none)"),
+        (["--cfg", "job", "algo.gama=1"], "algo.gama: no such setting"),  # shown, not checked
     ],
 )
 def test_a_bad_command_line_is_one_line_before_hydra_starts(argv, line):
@@ -500,6 +510,8 @@ def test_every_job_of_a_sweep_is_checked():
     assert len(seen) == 9 + 8
     assert {c.seed for c in seen} == set(range(9))
     assert {c.algo.gamma for c in seen} == set(gammas)
+    # --cfg shows a config as it is, values unchecked.
+    check_command_line("train", ["--cfg", "job", "seed=-1"], validate_train_config)
     # Hydra's own questions are Hydra's to answer.
     seen.clear()
     check_command_line("train", ["--help"], seen.append)

@@ -318,6 +318,7 @@ def test_a_zero_correction_flies_the_route_intercept_law(scenarios, law):
                        split="val")  # fmt: skip
     assert law_env.meeting_lag == law.get("start_lag", 0.0)
     assert law_env.meeting_horizon == law.get("horizon", 60.0)  # the time limit by default
+    assert law_env.law_horizon == law.get("horizon")
     route = make_scripted_policy("route_intercept", plain, **law)
     a, b = plain.reset(), law_env.reset()
     running = torch.ones(n, dtype=torch.bool)  # past its episode's end, an env is not compared
@@ -594,15 +595,14 @@ def test_a_checkpoint_flies_only_with_the_look_ahead_it_was_trained_with():
 
     def env(horizon):
         return SimpleNamespace(computes_meeting=True, route_flight=setpoint_flight(1.0, 1.0),
-                               meeting_lag=0.5, meeting_horizon=horizon, max_steps=600,
-                               control_period=0.1)  # fmt: skip
+                               meeting_lag=0.5, law_horizon=horizon)  # fmt: skip
 
     trained = {"interface": {"route_path": route_path_interface(env(120.0))}}
     check_route_path(trained, env(120.0), "best.pt", "evaluate")
-    with pytest.raises(ConfigError, match=r"'horizon': 120.0}, this env's .*'horizon': 60.0}"):
-        check_route_path(trained, env(60.0), "best.pt", "evaluate")
+    with pytest.raises(ConfigError, match=r"'horizon': 120.0}, this env's .*'horizon': None}"):
+        check_route_path(trained, env(None), "best.pt", "evaluate")
     # Saved before the look-ahead was a setting: the law looked as far as the time limit.
     del trained["interface"]["route_path"]["horizon"]
-    check_route_path(trained, env(60.0), "best.pt", "evaluate")
-    with pytest.raises(ConfigError, match="'horizon': 60.0}, this env's"):
+    check_route_path(trained, env(None), "best.pt", "evaluate")
+    with pytest.raises(ConfigError, match="'horizon': None}, this env's"):
         check_route_path(trained, env(120.0), "best.pt", "evaluate")

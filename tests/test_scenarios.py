@@ -263,12 +263,22 @@ def test_cli_writes_a_loadable_set_and_prints_the_report(tmp_path):
     [
         (("scenario.n_train=-1",), "error: scenario.n_train: count must be >= 0, got -1"),
         (("scenario.min_altitude=50",), "error: scenario: only 0 distinct scenarios"),
+        (("scenario.n_train=${nope}",), "error: scenario.n_train: Interpolation key 'nope' not"),
+        (("scenario.n_trian=5",), "error: scenario.n_trian: no such setting (did you mean "),
+        (("scenario=nope",), "error: scenario=nope: no such option (valid: pursuit, pursuit_2v1)"),
     ],
 )
 def test_cli_bad_input_exits_nonzero_and_writes_nothing(tmp_path, args, message):
     r = _cli("out_dir=set", *args, cwd=tmp_path)
     assert r.returncode == 2
     assert r.stderr.strip().startswith(message) and len(r.stderr.strip().splitlines()) == 1
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_cli_without_an_out_dir_is_one_line(tmp_path):
+    r = _cli(cwd=tmp_path)
+    assert r.returncode == 2
+    assert r.stderr == "error: out_dir: missing (???); give out_dir=DIR, the folder for the set\n"
     assert list(tmp_path.iterdir()) == []
 
 

@@ -63,10 +63,11 @@ def saved_interface(state: dict[str, Any]) -> dict[str, Any]:
 
 def route_path_interface(env) -> dict[str, float] | None:
     """The defender's path an env's meeting point assumes, the attacker's start-up lag it
-    allows for and how far ahead it looks (None: it computes none)."""
+    allows for and how far ahead it looks (the setting: None, the env's time limit, whatever
+    that is; None for the whole: it computes none)."""
     if not env.computes_meeting:
         return None
-    lag, horizon = env.meeting_lag, env.meeting_horizon
+    lag, horizon = env.meeting_lag, env.law_horizon
     return {**asdict(env.route_flight), "start_lag": lag, "horizon": horizon}
 
 
@@ -78,9 +79,8 @@ def check_route_path(state: dict[str, Any], env, path, where: str) -> None:
         return
     saved = saved_interface(state).get("route_path")
     if saved is not None:  # saved before the start-up lag, the look-ahead were settings
-        horizon = env.max_steps * env.control_period  # the run's own time limit, as now
         saved = {**saved, "start_lag": saved.get("start_lag", 0.0)}
-        saved["horizon"] = saved.get("horizon", horizon)
+        saved["horizon"] = saved.get("horizon")  # the time limit
     if saved is None:
         log.warning("%s: %s saved no route path; its meeting point is flown with %s, which may "
                     "not be the one it was trained with", where, path, now)  # fmt: skip

@@ -65,6 +65,7 @@ SHARED = (
     "route_flight",
     "meeting_lag",
     "meeting_horizon",
+    "law_horizon",
     "computes_meeting",
     "defender_network",
     "drone_action_spec",

@@ -332,13 +332,14 @@ class PursuitEnv(EnvBase):
         self.setpoint_acceptance = float(setpoint_acceptance)
         self.setpoint_gain, self.pursuit_gain = float(setpoint_gain), float(pursuit_gain)
         #: How :meth:`meeting` expects a route-flying defender to fly, the attacker's start-up
-        #: lag it allows for (s, the route law's ``start_lag``), how far ahead it looks (s, the
-        #: law's ``horizon``; the time limit by default), and whether every step computes the
-        #: meeting point (the action or the observation reads it).
+        #: lag it allows for (s, the route law's ``start_lag``), how far ahead it looks (s,
+        #: ``meeting_horizon``: the law's ``horizon``, ``law_horizon``, or the time limit), and
+        #: whether every step computes the meeting point (the action or the observation reads it).
         self.route_flight = setpoint_flight(self.setpoint_gain, self.setpoint_acceptance)
         self.meeting_lag = float(getattr(action, "start_lag", 0.0))
-        horizon = getattr(action, "horizon", None)  # the route law's look-ahead, s
-        self.meeting_horizon = self.max_steps * self.control_period if horizon is None else horizon
+        self.law_horizon = getattr(action, "horizon", None)  # its setting; None: the limit
+        limit = self.max_steps * self.control_period
+        self.meeting_horizon = limit if self.law_horizon is None else self.law_horizon
         self._route_times = route_times(self.meeting_horizon, self.device)
         self.computes_meeting = meets
         self.sampler = ScenarioSampler(

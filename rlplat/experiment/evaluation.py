@@ -459,9 +459,9 @@ def ensemble_members(
 
 def baseline_args(policy: str, cfg: DictConfig) -> dict[str, float]:
     """What the baseline ``policy`` takes from the run: ``route_intercept`` on a run that
-    corrects the route-intercept law (``action=route_law``) flies that law (its ``homing_time``
-    and ``start_lag``; a run saved before ``start_lag`` existed: none), so the baseline is the
-    learner's starting point."""
+    corrects the route-intercept law (``action=route_law``) flies that law (its ``homing_time``,
+    ``start_lag`` and ``horizon``, those the run's config sets: one saved before a key existed
+    flew its default), so the baseline is the learner's starting point."""
     action = cfg.get("action") or {}
     if policy != "route_intercept" or action.get("name") != "route_law":
         return {}

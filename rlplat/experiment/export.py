@@ -275,6 +275,7 @@ def interface_card(src: Source, env, actor: DeterministicActor, features) -> dic
             "point is its earliest point the attacker reaches at full speed per axis after "
             "start_lag s, within horizon s from now (rlplat.envs.kinematics.route_intercept)",
             **path,
+            "horizon": env.meeting_horizon,  # the seconds searched (a null setting: the limit)
         }
     if getattr(env.obs_fn, "reads_conformity", False):  # features the caller computes, with state
         interface["route_conformity"] = {

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
-from rlplat.cli import hydra_main
 from rlplat.errors import ConfigError
+from rlplat.experiment.command_line import hydra_main
 from rlplat.scenarios import ScenarioSpec, format_quality, write_scenario_set
 
 
@@ -13,7 +14,11 @@ def spec_of(cfg: DictConfig) -> ScenarioSpec:
     """The set a composed ``conf/scenarios.yaml`` asks for; one line if it cannot be made."""
     if OmegaConf.is_missing(cfg, "out_dir"):
         raise ConfigError("out_dir: missing (???); give out_dir=DIR, the folder for the set")
-    return ScenarioSpec.from_dict(OmegaConf.to_container(cfg.scenario, resolve=True))
+    try:
+        scenario = OmegaConf.to_container(cfg.scenario, resolve=True)
+    except OmegaConfBaseException as e:  # an interpolation that does not resolve
+        raise ConfigError(f"{e.full_key}: {str(e).splitlines()[0]}") from None
+    return ScenarioSpec.from_dict(scenario)
 
 
 @hydra_main("scenarios", spec_of)

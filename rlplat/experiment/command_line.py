@@ -1,0 +1,191 @@
+"""The command lines of the Hydra entry points (``train.py``, ``evaluate.py``, ``export.py``,
+``python -m rlplat.scenarios``): checked before Hydra starts, so that a mistake is one line."""
+
+from __future__ import annotations
+
+import difflib
+import functools
+import itertools
+import math
+import os
+import re
+import sys
+from collections.abc import Callable, Sequence
+from typing import Any, TypeVar
+
+from rlplat.cli import exit_on_error
+from rlplat.errors import ConfigError, RlplatError
+from rlplat.experiment.config import CONF_DIR
+
+T = TypeVar("T")
+
+
+def hydra_main(
+    config_name: str, validate: Callable[[Any], None] | None = None
+) -> Callable[[Callable[[Any], T]], Callable[..., T | None]]:
+    """``@hydra.main`` on ``conf/<config_name>.yaml``, whose bad command lines are one line.
+
+    Before Hydra starts, the command line's overrides are composed here, once for each job of
+    a ``-m`` sweep, and each composed config is checked with ``validate``: an unknown key, an
+    option a group does not have, an override Hydra cannot parse or a value ``validate``
+    refuses ends the program with one line on stderr and exit code 2, before Hydra makes a
+    run directory or starts the first job. The function's own :class:`RlplatError` is one
+    line too (:func:`exit_on_error`). ``HYDRA_FULL_ERROR=1`` shows Hydra's own report."""
+
+    def decorate(fn: Callable[[Any], T]) -> Callable[..., T | None]:
+        import hydra
+
+        run = hydra.main(config_path=str(CONF_DIR), config_name=config_name, version_base="1.3")(
+            exit_on_error(fn)
+        )
+
+        @functools.wraps(fn)
+        def entry(cfg_passthrough: Any = None) -> T | None:
+            if cfg_passthrough is not None:  # called with a composed config, as hydra.main allows
+                return run(cfg_passthrough)
+            if os.environ.get("HYDRA_FULL_ERROR") != "1":  # as Hydra reads it
+                try:
+                    check_command_line(config_name, sys.argv[1:], validate)
+                except RlplatError as e:
+                    print(f"error: {e}", file=sys.stderr)
+                    sys.exit(2)
+                except Exception:  # noqa: BLE001 - not ours to word: Hydra reports it, as before
+                    pass
+            return run()
+
+        return entry
+
+    return decorate
+
+
+#: Sweeps of more jobs than this are checked one swept value at a time (the others at their first).
+MAX_CHECKED_JOBS = 64
+
+
+def check_command_line(
+    config_name: str, argv: Sequence[str], validate: Callable[[Any], None] | None = None
+) -> None:
+    """Compose ``conf/<config_name>.yaml`` with the overrides of a command line (each job of
+    a ``-m`` sweep, or of ``hydra.mode=MULTIRUN``) and check each config with ``validate``
+    (not with ``--cfg``, which shows a config as it is). A ``glob(...)`` or interval sweep is
+    left to Hydra, and Hydra's own questions (``--help``, ``--info``, another config) too.
+
+    Raises:
+        ConfigError: one line naming the override, and the valid keys or options.
+    """
+    from hydra._internal.utils import get_args_parser
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.core.override_parser.types import ValueType
+    from hydra.errors import OverrideParseException
+
+    args, _ = get_args_parser().parse_known_args(list(argv))
+    if any(
+        getattr(args, flag, None)
+        for flag in (
+            "help",
+            "hydra_help",
+            "info",
+            "shell_completion",
+            "config_path",
+            "config_name",
+            "config_dir",
+            "experimental_rerun",
+        )  # fmt: skip
+    ):
+        return  # not a job of this config: Hydra answers these itself
+    try:
+        parsed = OverridesParser.create().parse_overrides(args.overrides)
+    except OverrideParseException as e:
+        raise ConfigError(f"{e.override}: {_one_line(e.message)}") from None
+    if args.cfg:
+        validate = None  # show the config, however incomplete; keys and options still count
+    multirun = args.multirun or any(
+        o.key_or_group == "hydra.mode" and o.get_value_element_as_str() == "MULTIRUN"
+        for o in parsed
+    )
+    if not multirun:
+        jobs = [list(args.overrides)]
+    elif any(o.value_type == ValueType.GLOB_CHOICE_SWEEP for o in parsed) or any(
+        o.is_sweep_override() and not o.is_discrete_sweep() for o in parsed
+    ):
+        return  # a glob or an interval: the sweeper expands it (or refuses it) itself
+    else:
+        jobs = _sweep_jobs(parsed)
+    for overrides in jobs:
+        cfg = _compose(config_name, overrides)
+        if validate is not None:
+            validate(cfg)
+
+
+def _sweep_jobs(parsed: Sequence[Any]) -> list[list[str]]:
+    """The override lists of a ``-m`` sweep's jobs, as Hydra's basic sweeper makes them (every
+    combination); past :data:`MAX_CHECKED_JOBS`, each swept value once with the others' first."""
+    choices: dict[str, list[str]] = {}
+    for o in parsed:
+        key = o.get_key_element()
+        if o.is_sweep_override():
+            choices[key] = [f"{key}={v}" for v in o.sweep_string_iterator()]
+        else:
+            value = o.get_value_element_as_str()
+            choices[key] = [key if value is None else f"{key}={value}"]
+    lists = list(choices.values())
+    if math.prod(len(v) for v in lists) <= MAX_CHECKED_JOBS:
+        return [list(job) for job in itertools.product(*lists)]
+    first = [v[0] for v in lists]
+    return [first[:i] + [value] + first[i + 1 :] for i, v in enumerate(lists) for value in v]
+
+
+def _compose(config_name: str, overrides: list[str]) -> Any:
+    """The job's config without its ``hydra`` node; Hydra's composition errors as one line."""
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException, MissingConfigException
+    from omegaconf import open_dict
+    from omegaconf.errors import OmegaConfBaseException
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        try:
+            cfg = compose(config_name=config_name, overrides=overrides, return_hydra_config=True)
+        except MissingConfigException as e:
+            if not (e.missing_cfg_file and e.options is not None):
+                raise ConfigError(_one_line(str(e))) from None
+            group, _, name = e.missing_cfg_file.rpartition("/")
+            options = ", ".join(sorted(e.options, key=_natural))
+            raise ConfigError(f"{group}={name}: no such option (valid: {options})") from None
+        except HydraException as e:
+            cause = e.__cause__
+            if isinstance(cause, OmegaConfBaseException) and "not in struct" in str(cause):
+                raise ConfigError(_unknown_key(cause)) from None
+            raise ConfigError(_one_line(str(e))) from None
+    with open_dict(cfg):
+        del cfg["hydra"]
+    return cfg
+
+
+def _unknown_key(cause: Any) -> str:
+    """One line for a key no config has: the nearest keys of its node, or all of them."""
+    from omegaconf import DictConfig
+
+    key, parent = cause.full_key, cause.parent_node
+    where = key.rpartition(".")[0]
+    keys = [str(k) for k in parent if k != "hydra"] if isinstance(parent, DictConfig) else []
+    if not keys:  # a value, not a node of settings
+        return f"{key}: no such setting ({where or 'the config'} has none)"
+    close = [f"{where}.{k}" if where else k for k in difflib.get_close_matches(cause.key, keys)]
+    if close:
+        hint = f"did you mean {' or '.join(close)}?"
+    else:
+        hint = f"{where or 'the config'} has {', '.join(keys)}"
+    if key.startswith("hydra."):  # Hydra's own config takes new keys
+        hint += f"; +{key}=VALUE adds one"
+    return f"{key}: no such setting ({hint})"
+
+
+def _one_line(text: str) -> str:
+    """Hydra's message in one line: its lines joined, its pointers to the docs dropped."""
+    lines = [ln.strip() for ln in str(text).splitlines() if ln.strip()]
+    return " ".join(ln for ln in lines if not ln.startswith(("See https://", "Config search path")))
+
+
+def _natural(name: str) -> list[Any]:
+    """Sort key that puts attacker_v2 before attacker_v10."""
+    return [int(p) if p.isdigit() else p for p in re.split(r"(\d+)", name)]
