@@ -15,7 +15,7 @@ from typing import Any, TypeVar
 
 from rlplat.cli import exit_on_error
 from rlplat.errors import ConfigError, RlplatError
-from rlplat.experiment.config import CONF_DIR
+from rlplat.experiment.config import CONF_DIR, compose_config
 
 T = TypeVar("T")
 
@@ -137,25 +137,23 @@ def _sweep_jobs(parsed: Sequence[Any]) -> list[list[str]]:
 
 def _compose(config_name: str, overrides: list[str]) -> Any:
     """The job's config without its ``hydra`` node; Hydra's composition errors as one line."""
-    from hydra import compose, initialize_config_dir
     from hydra.errors import HydraException, MissingConfigException
     from omegaconf import open_dict
     from omegaconf.errors import OmegaConfBaseException
 
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        try:
-            cfg = compose(config_name=config_name, overrides=overrides, return_hydra_config=True)
-        except MissingConfigException as e:
-            if not (e.missing_cfg_file and e.options is not None):
-                raise ConfigError(_one_line(str(e))) from None
-            group, _, name = e.missing_cfg_file.rpartition("/")
-            options = ", ".join(sorted(e.options, key=_natural))
-            raise ConfigError(f"{group}={name}: no such option (valid: {options})") from None
-        except HydraException as e:
-            cause = e.__cause__
-            if isinstance(cause, OmegaConfBaseException) and "not in struct" in str(cause):
-                raise ConfigError(_unknown_key(cause)) from None
+    try:
+        cfg = compose_config(config_name, overrides, hydra=True)
+    except MissingConfigException as e:
+        if not (e.missing_cfg_file and e.options is not None):
             raise ConfigError(_one_line(str(e))) from None
+        group, _, name = e.missing_cfg_file.rpartition("/")
+        options = ", ".join(sorted(e.options, key=_natural))
+        raise ConfigError(f"{group}={name}: no such option (valid: {options})") from None
+    except HydraException as e:
+        cause = e.__cause__
+        if isinstance(cause, OmegaConfBaseException) and "not in struct" in str(cause):
+            raise ConfigError(_unknown_key(cause)) from None
+        raise ConfigError(_one_line(str(e))) from None
     with open_dict(cfg):
         del cfg["hydra"]
     return cfg

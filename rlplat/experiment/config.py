@@ -12,10 +12,14 @@ from omegaconf import DictConfig
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
 
-def compose_config(config_name: str, overrides: Sequence[str] = ()) -> DictConfig:
-    """Compose ``conf/<config_name>.yaml`` with command-line style ``overrides``; inside an
-    entry point's ``@hydra.main`` (whose search path is this ``conf/``) through its Hydra."""
+def compose_config(
+    config_name: str, overrides: Sequence[str] = (), hydra: bool = False
+) -> DictConfig:
+    """Compose ``conf/<config_name>.yaml`` with command-line style ``overrides`` (with
+    ``hydra``, also Hydra's own ``hydra`` node); inside an entry point's ``@hydra.main``
+    (whose search path is this ``conf/``) through its Hydra."""
+    args = {"config_name": config_name, "overrides": list(overrides), "return_hydra_config": hydra}
     if GlobalHydra.instance().is_initialized():
-        return compose(config_name=config_name, overrides=list(overrides))
+        return compose(**args)
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return compose(config_name=config_name, overrides=list(overrides))
+        return compose(**args)
