@@ -266,7 +266,11 @@ def _numbers(rules):
 NUMERIC = [[f"++{k}=nan"] for k in _numbers(TRAIN_RULES)]  # inf: see BAD_TRAIN
 for _group, (_registry, _rules, _args) in COMPONENTS.items():
     for _name, _cls in _registry.items():
-        NUMERIC += [[f"{_group}={_name}", f"++{_group}.{k}=nan"] for k in knobs(_cls, _args)]
+        NUMERIC += [
+            [f"{_group}={_name}", f"++{_group}.{k}=nan"]
+            for k, default in knobs(_cls, _args).items()
+            if not isinstance(default, str)  # a choice of names (action.unreachable)
+        ]
 
 
 @pytest.mark.parametrize("overrides", NUMERIC, ids=lambda o: " ".join(o))
@@ -387,11 +391,14 @@ def test_a_run_saved_before_a_key_existed_resumes_with_its_neutral_value():
         check_resume(saved, resolved("drone=attacker_v7", "resume=true"))
     # The route law's later settings: a run of the default drone saved before them resumes.
     saved = resolved("drone=attacker_v10")
-    for key in ("start_lag", "gate_low", "gate_high", "horizon"):
+    for key in ("start_lag", "gate_low", "gate_high", "horizon", "unreachable"):
         del saved["action"][key]
     check_resume(saved, resolved("drone=attacker_v10", "resume=true"))
     with pytest.raises(ConfigError, match=r"action\.horizon \(absent -> 120\)"):
         check_resume(saved, resolved("drone=attacker_v10", "action.horizon=120", "resume=true"))
+    with pytest.raises(ConfigError, match=r"action\.unreachable \(absent -> 'head_off'\)"):
+        check_resume(saved, resolved("drone=attacker_v10", "action.unreachable=head_off",
+                                     "resume=true"))  # fmt: skip
 
 
 def test_check_resume_names_added_and_removed_keys():

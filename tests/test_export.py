@@ -363,7 +363,9 @@ def test_a_guided_controller_exports_with_its_guidance(
     assert ev.summary["outcomes_differing_from_torch"] == 0
     if path is not None:  # the route_intercept baseline flies the law the run corrects
         baseline = evaluate_run(run, policy="route_intercept", plots=False).summary
-        assert baseline["policy_args"] == {k: law[k] for k in ("homing_time", "start_lag")}
+        assert baseline["policy_args"] == {
+            k: law[k] for k in ("homing_time", "start_lag", "unreachable")
+        }  # the horizon: null, the time limit
         # A checkpoint trained on another route path is refused.
         ckpt = run / "checkpoints" / "last.pt"
         state = torch.load(ckpt, weights_only=False)

@@ -307,8 +307,8 @@ def test_the_start_up_lag_moves_the_meeting_later():
 
 @pytest.mark.parametrize(
     "law",
-    [{}, V12_LAW, {**V12_LAW, "horizon": 120.0}],
-    ids=["default", "attacker_v12", "looking_120_s_ahead"],
+    [{}, V12_LAW, {**V12_LAW, "horizon": 120.0}, {**V12_LAW, "unreachable": "head_off"}],
+    ids=["default", "attacker_v12", "looking_120_s_ahead", "heading_off"],
 )
 def test_a_zero_correction_flies_the_route_intercept_law(scenarios, law):
     n = len(scenarios.split("val"))
@@ -331,7 +331,11 @@ def test_a_zero_correction_flies_the_route_intercept_law(scenarios, law):
     assert running.sum() >= n // 2
 
 
-@pytest.mark.parametrize("law", [{}, V12_LAW], ids=["default", "attacker_v12"])
+@pytest.mark.parametrize(
+    "law",
+    [{}, V12_LAW, {**V12_LAW, "unreachable": "head_off"}],
+    ids=["default", "attacker_v12", "heading_off"],
+)
 def test_a_scripted_policy_flies_its_own_commands_through_the_route_law(scenarios, law):
     # By name, route_intercept is the law the env's action corrects (its homing and lag).
     n = len(scenarios.split("val"))
@@ -376,6 +380,48 @@ def test_the_law_flies_to_the_meeting_point_until_homing(tmp_path, write_small_s
                               num_envs=n, split="val"))  # fmt: skip
     homing = ~away
     torch.testing.assert_close(guidance[homing], pn(td.clone())["action"][homing])
+
+
+def test_out_of_reach_the_law_chases_or_heads_the_defender_off(tmp_path, write_small_set):
+    # Slow attackers, fast route-flying defenders: many meeting points are out of reach.
+    scenarios = write_small_set(
+        tmp_path, ROUTE_ONLY, "scenario.params.attacker_max_speed.high=1.5",
+        "scenario.params.defender_max_speed.low=3.5",
+    )  # fmt: skip
+    n = len(scenarios.split("val"))
+    chase, head_off = (
+        make_env(V10, f"action.unreachable={u}", scenarios=scenarios, num_envs=n, split="val")
+        for u in ("chase", "head_off")
+    )
+    assert (chase.action_fn.unreachable, head_off.action_fn.unreachable) == ("chase", "head_off")
+    td = head_off.reset()
+    chase.reset()
+    p, v = head_off.dynamics.position, head_off.dynamics.velocity
+    aim, due, found = head_off.meeting(p, v)
+    out = ~found[:, 0]
+    assert out.sum() >= 3 and found[:, 0].any()
+    # Out of reach the answer is where the route puts the defender 60 s on (the search's end).
+    assert (due[out, 0] == 60.0).all()
+    own, speed = td["positions"][:, 0], td["max_speed"][:, :1]
+    fly_to = (head_off.action_fn.gain * (aim[:, 0] - own) / speed).clamp(-1, 1)
+    pn = make_scripted_policy("proportional_navigation", make_env(PLAIN, scenarios=scenarios,
+                              num_envs=n, split="val"))(td.clone())["action"]  # fmt: skip
+    g_head, g_chase = (env.guidance(p, v)[:, 0] for env in (head_off, chase))
+    torch.testing.assert_close(g_head[out], fly_to[out])
+    torch.testing.assert_close(g_chase[out], pn[out])
+    torch.testing.assert_close(g_head[~out], g_chase[~out])  # in reach: one law
+    differ = (g_head[out] - g_chase[out]).abs().amax(-1) > 0.1  # saturated commands may agree
+    assert differ.float().mean() >= 0.5
+    assert head_off.action_fn.card()["guidance"]["unreachable"] == "head_off"
+    assert any("holds" in line for line in head_off.action_fn.describe())
+
+
+def test_the_route_law_refuses_an_unknown_way_out_of_reach(scenarios):
+    with pytest.raises(ConfigError, match=r"^action.unreachable: unknown 'wait'; valid: chase, "):
+        make_env(V10, "action.unreachable=wait", scenarios=scenarios, num_envs=2)
+    with pytest.raises(ConfigError, match=r"^route_intercept.unreachable: unknown 'wait'"):
+        make_scripted_policy("route_intercept", make_env(PLAIN, scenarios=scenarios),
+                             unreachable="wait")  # fmt: skip
 
 
 def test_the_route_law_meets_fast_route_flying_defenders_as_often_as_pn(tmp_path, write_small_set):

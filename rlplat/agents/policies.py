@@ -40,6 +40,7 @@ from rlplat.envs.kinematics import (
     intercept_action,
     law_horizon,
     law_times,
+    law_unreachable,
     nearest,
     route_law,
     route_meeting,
@@ -182,10 +183,10 @@ class RouteIntercept(ProportionalNavigation):
     that path the attacker can reach in time (:func:`~rlplat.envs.kinematics.route_intercept`,
     at full speed per axis after a start-up lag ``start_lag``). The attacker flies to that point
     (``gain`` per metre, saturated at its maximum speed) and waits there, until the defender is
-    due within ``homing_time``; from then on, and where no point is reachable, it flies
-    proportional navigation (``lead``, ``max_lead_time``). A defender that leaves its route
-    (the ``nn`` strategy evades) is met where its route would have taken it, so the law can do
-    worse than proportional navigation there.
+    due within ``homing_time``; from then on it flies proportional navigation (``lead``,
+    ``max_lead_time``), and where no point is reachable it does as ``unreachable`` says. A
+    defender that leaves its route (the ``nn`` strategy evades) is met where its route would
+    have taken it, so the law can do worse than proportional navigation there.
 
     Args:
         routes: (R, S, 3) m, the scenario set's routes. scenario_routes: (E, m) int64, each
@@ -196,10 +197,13 @@ class RouteIntercept(ProportionalNavigation):
         homing_time: s, switch to proportional navigation when the meeting is this close.
         start_lag: s, the attacker's start-up lag the meeting point allows for.
         horizon: s, how far ahead it looks for a meeting point (None: ``time_limit``).
+        unreachable: where no point is reachable, ``chase`` (proportional navigation) or
+            ``head_off`` (to the path's point at the horizon's end, and hold there).
         gain, lead, max_lead_time: as :class:`ProportionalNavigation`.
 
     Made by name (``make_scripted_policy``), it flies the law of the env's action where that
-    action is the route law (``action=route_law``: its ``homing_time`` and ``start_lag``), so
+    action is the route law (``action=route_law``: its ``homing_time``, ``start_lag``,
+    ``horizon`` and ``unreachable``), so
     the baseline is the law a run's correction corrects; otherwise these defaults.
     """
 
@@ -216,11 +220,13 @@ class RouteIntercept(ProportionalNavigation):
         homing_time: float = 2.0,
         start_lag: float = 0.0,
         horizon: float | None = None,
+        unreachable: str = "chase",
         **pn: Any,
     ) -> None:
         super().__init__(**pn)
         times = law_times("route_intercept", homing_time=homing_time, start_lag=start_lag)
         horizon = law_horizon("route_intercept", horizon)
+        self.unreachable = law_unreachable("route_intercept", unreachable)
         self.register_buffer("routes", routes.float())
         self.register_buffer("scenario_routes", scenario_routes.long())
         self.register_buffer("times", route_times(time_limit if horizon is None else horizon))
@@ -248,7 +254,8 @@ class RouteIntercept(ProportionalNavigation):
             max_speed[:, self.others], routes, waypoint, near, times=self.times,
             reach=self.capture_radius, flight=self.flight, lag=self.start_lag,
         )  # fmt: skip
-        action = route_law(homing, aim - own, due, reachable, speed, self.gain, self.homing_time)
+        action = route_law(homing, aim - own, due, reachable, speed, self.gain, self.homing_time,
+                           self.unreachable)  # fmt: skip
         return self._action(action)
 
 

@@ -18,6 +18,7 @@ from rlplat.envs.kinematics import (
     intercept_action,
     law_horizon,
     law_times,
+    law_unreachable,
     route_law,
     targets,
 )
@@ -656,10 +657,11 @@ class RouteLawAction(GuidedVelocityAction):
     axis, with ``g`` the action of :func:`rlplat.envs.kinematics.route_law`: fly to the
     earliest point of the nearest defender's route-flying path the attacker can reach and hold
     there until the defender is due within ``homing_time``, proportional navigation from then
-    on and where no such point exists (the ``route_intercept`` baseline). The env computes the
-    meeting point from the defender's route (known in advance, as the capture ceiling
-    assumes), with the attacker at full speed per axis from ``start_lag`` s on. A zero action
-    flies the law; with ``scale >= 2`` :meth:`inverse` flies any command. Attackers only.
+    on (the ``route_intercept`` baseline); where no such point exists, as ``unreachable``
+    says. The env computes the meeting point from the defender's route (known in advance, as
+    the capture ceiling assumes), with the attacker at full speed per axis from ``start_lag``
+    s on. A zero action flies the law; with ``scale >= 2`` :meth:`inverse` flies any command.
+    Attackers only.
 
     Args:
         gain, lead, max_lead_time, scale: as :class:`GuidedVelocityAction` (``gain`` is also
@@ -674,14 +676,19 @@ class RouteLawAction(GuidedVelocityAction):
             (gate_high - gate_low), 0, 1)``, so a defender that keeps its route is met by the
             law alone and one that leaves it gets the whole correction. 0 and 0: no gate.
         horizon: s, how far ahead the law looks for a meeting point (None: the episode's time
-            limit). Past it the law chases (proportional navigation); a longer look finds a
-            point further along the route for an attacker too slow to meet the defender sooner.
+            limit). A longer look finds a point further along the route for an attacker too
+            slow to meet the defender sooner.
+        unreachable: where no meeting point within the horizon is reachable, ``chase`` flies
+            proportional navigation at the defender; ``head_off`` flies to where its
+            route-flying path puts it at the horizon's end (its route's end, if it gets there
+            sooner) and holds there: a defender faster than the attacker that leaves its route
+            to evade is met where the route takes it back.
     """
 
     name = "route_law"
     reads_route = True  # the env passes the meeting point with the guidance
     #: The law's own settings: what the ``route_intercept`` baseline flies with to be this law.
-    law_args = ("homing_time", "start_lag", "horizon")
+    law_args = ("homing_time", "start_lag", "horizon", "unreachable")
     corrects = ("the route-intercept law", "law")
 
     def __init__(
@@ -696,11 +703,13 @@ class RouteLawAction(GuidedVelocityAction):
         gate_low: float = 0.0,
         gate_high: float = 0.0,
         horizon: float | None = None,
+        unreachable: str = "chase",
     ) -> None:
         super().__init__(gain=gain, lead=lead, max_lead_time=max_lead_time, scale=scale)
         times = law_times("action", homing_time=homing_time, start_lag=start_lag)
         self.homing_time, self.start_lag = times["homing_time"], times["start_lag"]
         self.horizon = law_horizon("action", horizon)
+        self.unreachable = law_unreachable("action", unreachable)
         for name, v in (("gate_low", gate_low), ("gate_high", gate_high)):
             if not v >= 0:
                 raise ConfigError(f"action.{name}: must be >= 0, got {v}")
@@ -768,7 +777,8 @@ class RouteLawAction(GuidedVelocityAction):
         homing = super().guidance(rel, v_other, max_speed)
         aim, due, reachable = meeting
         speed = max_speed.unsqueeze(-1)
-        return route_law(homing, aim, due, reachable, speed, self.gain, self.homing_time)
+        return route_law(homing, aim, due, reachable, speed, self.gain, self.homing_time,
+                         self.unreachable)  # fmt: skip
 
     def card(self) -> dict[str, Any]:
         card = super().card()
@@ -793,6 +803,7 @@ class RouteLawAction(GuidedVelocityAction):
             "homing_time": self.homing_time,
             "start_lag": self.start_lag,
             "horizon": self.horizon,
+            "unreachable": self.unreachable,
         }
 
     def describe(self) -> list[str]:
@@ -804,7 +815,13 @@ class RouteLawAction(GuidedVelocityAction):
             f"until the defender is due within {self.homing_time:g} s (meeting points up to",
             f"{'the time limit' if self.horizon is None else f'{self.horizon:g} s'} ahead),",
             f"then proportional navigation (lead {self.lead:g}, max lead time "
-            f"{self.max_lead_time:g} s; rlplat.envs.kinematics.route_law).",
+            f"{self.max_lead_time:g} s; rlplat.envs.kinematics.route_law). Where no point is",
+            "reachable, it "
+            + (
+                "chases with proportional navigation."
+                if self.unreachable == "chase"
+                else "flies to where the route puts the defender at the horizon's end and holds."
+            ),
             *(
                 [
                     "GATED: the correction is multiplied by clamp((d - "

@@ -346,6 +346,23 @@ def law_horizon(where: str, horizon: float | None) -> float | None:
     return float(horizon)
 
 
+#: What the route-intercept law flies where no meeting point within its look-ahead is
+#: reachable: ``chase``, proportional navigation at the defender; ``head_off``, to the point of
+#: the defender's route-flying path at the end of the look-ahead (its route's end, if it gets
+#: there sooner), held there as a meeting point is.
+UNREACHABLE = ("chase", "head_off")
+
+
+def law_unreachable(where: str, unreachable: str) -> str:
+    """The route-intercept law's ``unreachable`` setting, checked: one of :data:`UNREACHABLE`,
+    or a one-line error naming ``where.unreachable``."""
+    if unreachable not in UNREACHABLE:
+        raise ConfigError(
+            f"{where}.unreachable: unknown {unreachable!r}; valid: {', '.join(UNREACHABLE)}"
+        )
+    return unreachable
+
+
 def law_times(where: str, **times: float) -> dict[str, float]:
     """The route-intercept law's times (s) as floats; a one-line error naming ``where.key`` for
     one that is negative or not finite."""
@@ -363,14 +380,19 @@ def route_law(
     max_speed: Tensor,
     gain: float,
     homing_time: float,
+    unreachable: str = "chase",
 ) -> Tensor:
     """The route-intercept law's action in [-1, 1] per axis: fly to the meeting point ``aim``
     (*B, 3) m relative to the pursuer (``gain`` per metre, saturated at ``max_speed`` (*B, 1)),
-    and hold there, until the target is ``due`` (*B,) s within ``homing_time``; from then on,
-    and where no meeting point is ``reachable`` (*B,), the ``homing`` action (*B, 3), e.g.
-    proportional navigation's."""
+    and hold there, until the target is ``due`` (*B,) s within ``homing_time``; from then on
+    the ``homing`` action (*B, 3), e.g. proportional navigation's. Where no meeting point is
+    ``reachable`` (*B,), ``unreachable="chase"`` flies ``homing`` at once; ``"head_off"`` flies
+    to ``aim`` all the same (:func:`route_intercept`'s answer then: the target's path at the
+    last instant searched)."""
     fly_to = (gain * aim / max_speed).clamp(-1.0, 1.0)
-    chase = (due <= homing_time) | ~reachable
+    chase = due <= homing_time
+    if unreachable == "chase":
+        chase = chase | ~reachable
     return torch.where(chase.unsqueeze(-1), homing, fly_to)
 
 

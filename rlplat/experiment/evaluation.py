@@ -457,16 +457,17 @@ def ensemble_members(
     return members
 
 
-def baseline_args(policy: str, cfg: DictConfig) -> dict[str, float]:
+def baseline_args(policy: str, cfg: DictConfig) -> dict[str, float | str]:
     """What the baseline ``policy`` takes from the run: ``route_intercept`` on a run that
     corrects the route-intercept law (``action=route_law``) flies that law (its ``homing_time``,
-    ``start_lag`` and ``horizon``, those the run's config sets: one saved before a key existed
-    flew its default), so the baseline is the learner's starting point."""
+    ``start_lag``, ``horizon`` and ``unreachable``, those the run's config sets: one saved
+    before a key existed flew its default), so the baseline is the learner's starting point."""
     action = cfg.get("action") or {}
     if policy != "route_intercept" or action.get("name") != "route_law":
         return {}
     law = ACTIONS["route_law"].law_args
-    return {k: float(action[k]) for k in law if action.get(k) is not None}
+    return {k: v if isinstance(v := action[k], str) else float(v)
+            for k in law if action.get(k) is not None}  # fmt: skip
 
 
 def plain_action(cfg: DictConfig) -> DictConfig:

@@ -32,6 +32,7 @@ from rlplat.envs.airsim.client import parse_endpoint
 from rlplat.envs.airsim.dynamics import TIME_MISMATCH
 from rlplat.envs.components import ACTIONS, OBSERVATIONS, REWARD_TERMS
 from rlplat.envs.dynamics import DYNAMICS
+from rlplat.envs.kinematics import UNREACHABLE
 from rlplat.envs.pursuit import ORDERS, ROLES, reward_role_problem
 from rlplat.errors import ConfigError
 from rlplat.experiment.logger import BACKENDS
@@ -271,6 +272,7 @@ ACTION_KNOBS: dict[str, Rule] = {
     "homing_time": NON_NEGATIVE,
     "start_lag": NON_NEGATIVE,
     "horizon": Num(gt=0, null=True),
+    "unreachable": Choice(UNREACHABLE),
     "gate_low": NON_NEGATIVE,
     "gate_high": NON_NEGATIVE,
 }
@@ -590,6 +592,7 @@ ADDED_KEYS: dict[str, Any] = {
     "action.gate_low": 0.0,
     "action.gate_high": 0.0,
     "action.horizon": None,
+    "action.unreachable": "chase",
     "algo.actor_average": 0.0,
     "algo.noise_correlation": 0.0,
     "algo.demonstrations": [],
