@@ -360,35 +360,42 @@ def test_a_scripted_policy_flies_its_own_commands_through_the_route_law(scenario
         assert running.sum() >= n // 2
 
 
-def test_the_law_flies_to_the_meeting_point_until_homing(tmp_path, write_small_set):
-    # Slow attackers, fast route-flying defenders: the meeting points lie far ahead.
+def slow_attackers(tmp_path, write_small_set, attacker_high, defender_low):
+    """A set of slow attackers against fast route-flying defenders, and its val split's size."""
     scenarios = write_small_set(
-        tmp_path, ROUTE_ONLY, "scenario.params.attacker_max_speed.high=2",
-        "scenario.params.defender_max_speed.low=3",
+        tmp_path, ROUTE_ONLY, f"scenario.params.attacker_max_speed.high={attacker_high}",
+        f"scenario.params.defender_max_speed.low={defender_low}",
     )  # fmt: skip
-    n = len(scenarios.split("val"))
+    return scenarios, len(scenarios.split("val"))
+
+
+def law_commands(env, td, aim, scenarios):
+    """The first attacker's two commands in the reset state ``td``: flying to ``aim`` (the
+    meeting point, (N, k, 3) m) and proportional navigation's."""
+    own, speed = td["positions"][:, 0], td["max_speed"][:, :1]
+    fly_to = (env.action_fn.gain * (aim[:, 0] - own) / speed).clamp(-1, 1)
+    plain = make_env(PLAIN, scenarios=scenarios, num_envs=td.shape[0], split="val")
+    return fly_to, make_scripted_policy("proportional_navigation", plain)(td.clone())["action"]
+
+
+def test_the_law_flies_to_the_meeting_point_until_homing(tmp_path, write_small_set):
+    # The meeting points lie far ahead.
+    scenarios, n = slow_attackers(tmp_path, write_small_set, 2, 3)
     env = make_env(V10, scenarios=scenarios, num_envs=n, split="val")
     td = env.reset()
     aim, due, found = env.meeting(env.dynamics.position, env.dynamics.velocity)
     away = found[:, 0] & (due[:, 0] > 2.0)  # the law flies to the point
     assert away.sum() >= 3
     guidance = env.guidance(env.dynamics.position, env.dynamics.velocity)[:, 0]
-    own, speed = td["positions"][:, 0], td["max_speed"][:, :1]
-    expected = (env.action_fn.gain * (aim[:, 0] - own) / speed).clamp(-1, 1)
+    expected, pn = law_commands(env, td, aim, scenarios)
     torch.testing.assert_close(guidance[away], expected[away])
-    pn = make_scripted_policy("proportional_navigation", make_env(PLAIN, scenarios=scenarios,
-                              num_envs=n, split="val"))  # fmt: skip
     homing = ~away
-    torch.testing.assert_close(guidance[homing], pn(td.clone())["action"][homing])
+    torch.testing.assert_close(guidance[homing], pn[homing])
 
 
 def test_out_of_reach_the_law_chases_or_heads_the_defender_off(tmp_path, write_small_set):
-    # Slow attackers, fast route-flying defenders: many meeting points are out of reach.
-    scenarios = write_small_set(
-        tmp_path, ROUTE_ONLY, "scenario.params.attacker_max_speed.high=1.5",
-        "scenario.params.defender_max_speed.low=3.5",
-    )  # fmt: skip
-    n = len(scenarios.split("val"))
+    # Many meeting points are out of reach.
+    scenarios, n = slow_attackers(tmp_path, write_small_set, 1.5, 3.5)
     chase, head_off = (
         make_env(V10, f"action.unreachable={u}", scenarios=scenarios, num_envs=n, split="val")
         for u in ("chase", "head_off")
@@ -402,10 +409,7 @@ def test_out_of_reach_the_law_chases_or_heads_the_defender_off(tmp_path, write_s
     assert out.sum() >= 3 and found[:, 0].any()
     # Out of reach the answer is where the route puts the defender 60 s on (the search's end).
     assert (due[out, 0] == 60.0).all()
-    own, speed = td["positions"][:, 0], td["max_speed"][:, :1]
-    fly_to = (head_off.action_fn.gain * (aim[:, 0] - own) / speed).clamp(-1, 1)
-    pn = make_scripted_policy("proportional_navigation", make_env(PLAIN, scenarios=scenarios,
-                              num_envs=n, split="val"))(td.clone())["action"]  # fmt: skip
+    fly_to, pn = law_commands(head_off, td, aim, scenarios)
     g_head, g_chase = (env.guidance(p, v)[:, 0] for env in (head_off, chase))
     torch.testing.assert_close(g_head[out], fly_to[out])
     torch.testing.assert_close(g_chase[out], pn[out])
