@@ -156,6 +156,28 @@ def test_best_checkpoint_loads_as_a_deterministic_policy(scenarios, tmp_path, ti
     assert torch.equal(a.returns, b.returns)
 
 
+def test_keep_checkpoints_keeps_each_validations_policy(scenarios, tmp_path, tiny_run):
+    from rlplat.experiment.evaluation import evaluate_run
+
+    tiny_run(scenarios, tmp_path / "plain")
+    assert not list((tmp_path / "plain" / "checkpoints").glob("val-*.pt"))
+    summary = tiny_run(scenarios, tmp_path / "kept", "train.keep_checkpoints=true")
+    ckpts = tmp_path / "kept" / "checkpoints"
+    # validated at the start (after the 64 scripted frames), then every 128 frames
+    kept = sorted(ckpts.glob("val-*.pt"))
+    assert [p.name for p in kept] == ["val-0000064.pt", "val-0000128.pt", "val-0000256.pt"]
+    states = {int(p.stem[4:]): load_checkpoint(p) for p in kept}
+    assert all(s["counters"]["frames"] == frames for frames, s in states.items())
+    last, best = load_checkpoint(ckpts / "last.pt"), load_checkpoint(ckpts / "best.pt")
+    for kept_state, state in ((states[256], last), (states[summary["best_frames"]], best)):
+        for key, value in state["actor"].items():
+            assert torch.equal(kept_state["actor"][key], value), key
+    # A kept checkpoint flies through evaluate.py's ckpt=PATH like best.pt
+    path = ckpts / f"val-{summary['best_frames']:07d}.pt"
+    ev = evaluate_run(tmp_path / "kept", ckpt=str(path), plots=False, trajectories=0)
+    assert ev.summary["capture_rate"] == summary["test_capture_rate"]
+
+
 @pytest.fixture
 def sampler_weights(monkeypatch) -> list:
     """(n, weights) of every ScenarioSampler.set_weights call, in order."""

@@ -139,6 +139,7 @@ TRAIN_RULES: dict[str, Rule] = {
     "train.total_frames": COUNT,
     "train.max_minutes": Num(gt=0, null=True),
     "train.eval_every_frames": COUNT,
+    "train.keep_checkpoints": flag,
     "train.device": device,
     "train.progress": flag,
     "train.threads": THREADS,
@@ -571,6 +572,7 @@ RESUME_FREE: tuple[str, ...] = (
     "train.max_minutes",
     "train.progress",
     "train.threads",
+    "train.keep_checkpoints",
     "env.compile_step",
     "algo.compile",
     "logger.*",
@@ -598,6 +600,7 @@ ADDED_KEYS: dict[str, Any] = {
     "algo.demonstrations": [],
     "algo.demonstration_repeat": 4,
     "init_from": None,
+    "train.keep_checkpoints": False,
 }
 
 

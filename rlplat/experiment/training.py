@@ -111,6 +111,7 @@ class Run:
     interface: dict[str, Any]
     config: dict[str, Any]  # resolved
     metrics: Metrics | None = None
+    keep_checkpoints: bool = False  # each validation's checkpoint as val-<frames>.pt too
 
     @property
     def ckpt_dir(self) -> Path:
@@ -156,7 +157,8 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     agent = make_agent(net, env, algo, device)
     if init is not None:
         warm_start(agent, *init, net, interface, env)
-    run = Run(run_dir, cfg.drone.learner, env, val_env, scenarios, agent, net, interface, config)
+    run = Run(run_dir, cfg.drone.learner, env, val_env, scenarios, agent, net, interface, config,
+              keep_checkpoints=cfg.train.keep_checkpoints)  # fmt: skip
     state = RunState()
     if resume_state is not None:
         state = RunState.from_checkpoint(resume_state)
@@ -651,6 +653,12 @@ def demonstrations(
 # Validation, checkpoints, test -----------------------------------------------------------
 
 
+def validation_checkpoint(frames: int) -> str:
+    """The file name ``train.keep_checkpoints`` gives the checkpoint validated at ``frames``
+    (zero-padded, so that the names sort as the frames do)."""
+    return f"val-{frames:07d}.pt"
+
+
 def checkpoint(run: Run, state: RunState) -> dict[str, Any]:
     """What ``best.pt`` and ``last.pt`` hold: the policy, the learner, the run's state."""
     return {
@@ -668,7 +676,8 @@ def checkpoint(run: Run, state: RunState) -> dict[str, Any]:
 
 def validate(run: Run, state: RunState, start: float) -> EpisodeResults:
     """Fly the validation split; keep the policy as ``best.pt`` if it beats the best so far
-    (on the role's score, then the mean return)."""
+    (on the role's score, then the mean return), and as ``val-<frames>.pt`` with
+    ``train.keep_checkpoints``."""
     t0 = time.perf_counter()
     results = evaluate(run.val_env, run.agent.flown_policy)
     state.evals += 1
@@ -680,6 +689,8 @@ def validate(run: Run, state: RunState, start: float) -> EpisodeResults:
     values["time/elapsed_s"] = time.perf_counter() - start
     run.metrics.log(values, state.frames)
     score = results.score(run.role)
+    if run.keep_checkpoints:
+        save_checkpoint(run.ckpt_dir / validation_checkpoint(state.frames), checkpoint(run, state))
     better = (score, results.mean_return) > (state.best_score, state.best_mean_return)
     if better:
         state.best_score, state.best_capture_rate = score, results.capture_rate
