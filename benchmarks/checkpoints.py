@@ -32,7 +32,7 @@ def scenario_split(text: str) -> tuple[str, str, str]:
     where, _, split = rest.rpartition(":")
     if not name or not where or split not in ("train", "val", "test"):
         raise argparse.ArgumentTypeError(
-            f"--on: NAME=DIR:SPLIT with SPLIT train, val or test, got {text!r}"
+            f"NAME=DIR:SPLIT with SPLIT train, val or test, got {text!r}"
         )
     return name, where, split
 
@@ -79,7 +79,7 @@ def main() -> None:
             counts[name].append(int(evaluate(env, actor).captured.sum()))
         env.close()
 
-    print(f"{cfg.drone.name} ({args.run_dir}): {len(kept)} kept checkpoints\n")
+    print(f"{cfg.drone.name} ({args.run_dir}), kept checkpoints: {len(kept)}\n")
     print("| frames | " + " | ".join(f"{k} ({sizes[k]:,})" for k in counts) + " |")
     print("|---" * (len(counts) + 1) + "|")
     for row, (frames, _) in enumerate(kept):
