@@ -53,6 +53,9 @@ def main() -> None:
     parser.add_argument("--on", nargs="+", type=scenario_split, required=True)
     parser.add_argument("--from-frames", type=int, default=0, help="skip earlier checkpoints")
     args = parser.parse_args()
+    names = [name for name, _, _ in args.on]
+    if len(set(names)) < len(names):
+        parser.error(f"argument --on: each NAME once, got {', '.join(names)}")
     logging.basicConfig(level=logging.WARNING)
 
     cfg = load_run_config(args.run_dir)
