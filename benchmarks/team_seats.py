@@ -10,7 +10,10 @@ whole split:
 - ``far-law`` / ``near-law``: the seat farther from (nearer to) the defender flies the law;
 - ``law``: every seat flies the law;
 - ``near:D1:D2``: the correction is scaled by ``clamp((D2 - d) / (D2 - D1), 0, 1)``, d the
-  seat's distance to the defender in m: whole within D1, none beyond D2 (a distance gate).
+  seat's distance to the defender in m: whole within D1, none beyond D2 (a distance gate);
+- ``head_off`` / ``far-head_off`` / ``near-head_off``: every seat (the farther, the nearer one)
+  flies the checkpoint over the route law with ``unreachable=head_off``, the others with
+  ``chase``, whichever the run was trained with (an ``action=route_law*`` run).
 
 Prints the capture rate of each variant, of the route flyers and of the network defenders.
 
@@ -34,6 +37,9 @@ from rlplat.eval.episodes import evaluate
 from rlplat.experiment.evaluation import check_policy_fits, checkpoint_path, load_run_config
 from rlplat.experiment.factory import build_eval_env, eval_num_envs, resolve_scenarios
 from rlplat.scenarios import STRATEGIES
+
+#: The head-off variants: which seats fly the route law's ``unreachable=head_off``.
+HEAD_OFF = {"head_off": "every", "far-head_off": "far", "near-head_off": "near"}
 
 
 class SeatVariant(TensorDictModuleBase):
@@ -69,8 +75,28 @@ class SeatVariant(TensorDictModuleBase):
         return td
 
 
+def seat_unreachable(action_fn, seats: str):
+    """The route law's guidance (``action_fn.guidance``'s signature) that flies ``head_off``
+    where no meeting point is reachable in ``seats`` (every, far or near: by the seat's distance
+    to its defender) and ``chase`` in the others."""
+    law, trained = type(action_fn), action_fn.unreachable
+
+    def guidance(rel, v_other, max_speed, a_other=None, meeting=None):
+        flown = {}
+        for mode in ("chase", "head_off"):
+            action_fn.unreachable = mode
+            flown[mode] = law.guidance(action_fn, rel, v_other, max_speed, a_other, meeting)
+        action_fn.unreachable = trained
+        distance = rel.norm(dim=-1)  # (*B, seats)
+        nearest = distance <= distance.amin(-1, keepdim=True)
+        heads_off = {"every": torch.ones_like(nearest), "far": ~nearest, "near": nearest}[seats]
+        return torch.where(heads_off.unsqueeze(-1), flown["head_off"], flown["chase"])
+
+    return guidance
+
+
 def check_variant(variant: str) -> str:
-    if variant in ("policy", "law", "far-law", "near-law"):
+    if variant in ("policy", "law", "far-law", "near-law", *HEAD_OFF):
         return variant
     parts = variant.split(":")
     try:
@@ -79,8 +105,8 @@ def check_variant(variant: str) -> str:
         low = high = float("nan")
     if parts[0] != "near" or len(parts) != 3 or not 0 <= low < high:
         raise argparse.ArgumentTypeError(
-            f"variant: policy, law, far-law, near-law or near:D1:D2 with 0 <= D1 < D2, "
-            f"got {variant!r}"
+            f"variant: policy, law, far-law, near-law, {', '.join(HEAD_OFF)} or near:D1:D2 "
+            f"with 0 <= D1 < D2, got {variant!r}"
         )
     return variant
 
@@ -107,6 +133,9 @@ def main() -> None:
                          num_envs=eval_num_envs(cfg, n))  # fmt: skip
     if getattr(env.action_fn, "corrects", None) is None:
         raise SystemExit(f"team_seats: action={cfg.action.name} corrects no law")
+    if any(v in HEAD_OFF for v in args.variants) and not hasattr(env.action_fn, "unreachable"):
+        raise SystemExit(f"team_seats: {', '.join(HEAD_OFF)} need action=route_law*, "
+                         f"got action={cfg.action.name}")  # fmt: skip
     try:
         features = check_policy_fits(state, cfg, env, path, lone_in_team=True)
     except ConfigError as error:
@@ -125,9 +154,14 @@ def main() -> None:
     print("| variant | captured | route flyers | network defenders |")
     print("|---|---|---|---|")
     for variant in args.variants:
-        module = SeatVariant(actor, variant, observation_key(env.group), env.action_key,
-                             slice(at, at + 3))  # fmt: skip
-        results = evaluate(env, module)
+        if variant in HEAD_OFF:  # the whole checkpoint, over a law that heads off in some seats
+            env.action_fn.guidance = seat_unreachable(env.action_fn, HEAD_OFF[variant])
+            results = evaluate(env, actor)
+            del env.action_fn.guidance  # the class's again
+        else:
+            module = SeatVariant(actor, variant, observation_key(env.group), env.action_key,
+                                 slice(at, at + 3))  # fmt: skip
+            results = evaluate(env, module)
         captured = results.captured  # one row per scenario of the split, in order
         rates = [captured.float().mean(), captured[~network].float().mean(),
                  captured[network].float().mean()]  # fmt: skip
