@@ -1,0 +1,140 @@
+"""Where the network defender stops: stalls of the defenders on a split, flown against a run's
+checkpoint (in every seat of a team, as ``evaluate.py lone_in_team=true``) or a baseline.
+
+A stall is a stretch of at least ``--seconds`` s, from ``--after`` s into the episode (every
+drone starts at rest) until its end, in which the defender flies slower than ``--speed`` m/s
+(its speed over each control period, from the recorded positions). Per defender strategy (the
+route flyers are the control: they slow down only at the route's end), prints: the episodes,
+those with a stall, the stalls' median length and the nearest attacker's median distance at a
+stall's start and end, and the capture rates of the episodes with and without one.
+
+    .venv/bin/python benchmarks/defender_stalls.py RUN_DIR --scenarios data/scenarios/pursuit2v1 \\
+        [--split test] [--policy checkpoint|proportional_navigation] [--speed 0.5] [--seconds 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import statistics
+from pathlib import Path
+
+import torch
+
+from rlplat.agents.checkpoint import actor_from_state, load_checkpoint, saved_interface
+from rlplat.agents.policies import make_scripted_policy
+from rlplat.envs.pursuit import ROLES
+from rlplat.eval.episodes import evaluate
+from rlplat.experiment.evaluation import (
+    check_policy_fits,
+    checkpoint_path,
+    load_run_config,
+    plain_action,
+)
+from rlplat.experiment.factory import build_eval_env, eval_num_envs, resolve_scenarios
+from rlplat.scenarios import STRATEGIES
+
+
+def stalls(slow: torch.Tensor, first: int, last: int, shortest: int) -> list[tuple[int, int]]:
+    """The runs of True in ``slow`` (T,) within steps [first, last) at least ``shortest`` long,
+    as (start, end) steps."""
+    runs, start = [], None
+    for t in range(first, last):
+        if slow[t] and start is None:
+            start = t
+        if start is not None and (not slow[t] or t == last - 1):
+            end = t + 1 if slow[t] else t
+            if end - start >= shortest:
+                runs.append((start, end))
+            start = None
+    return runs
+
+
+def rate(captured: torch.Tensor, rows: torch.Tensor) -> str:
+    """The capture rate of ``rows`` (bool) of ``captured`` and their count, or "-"."""
+    return f"{captured[rows].float().mean():.3f} ({int(rows.sum())})" if rows.any() else "-"
+
+
+def median(values: list[float]) -> str:
+    return f"{statistics.median(values):.1f}" if values else "-"
+
+
+def positive(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}")
+    return value
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run_dir", type=Path, help="an attacker's training run")
+    parser.add_argument("--scenarios", required=True, help="a scenario set")
+    parser.add_argument("--split", default="test", choices=("train", "val", "test"))
+    parser.add_argument("--ckpt", default="best", choices=("best", "last"))
+    parser.add_argument(
+        "--policy", default="checkpoint", choices=("checkpoint", "proportional_navigation")
+    )
+    parser.add_argument("--speed", type=positive, default=0.5, help="m/s, slower is a stall")
+    parser.add_argument("--seconds", type=positive, default=5.0, help="s, a stall's least length")
+    parser.add_argument("--after", type=positive, default=2.0, help="s, from the start")
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+
+    cfg = load_run_config(args.run_dir)
+    if args.policy != "checkpoint":
+        cfg = plain_action(cfg)  # the baselines fly the plain velocity action
+    scenarios = resolve_scenarios(cfg, args.scenarios)
+    split = scenarios.split(args.split)
+    n = len(split)
+    env = build_eval_env(cfg, scenarios=scenarios, split=args.split,
+                         num_envs=eval_num_envs(cfg, n))  # fmt: skip
+    if ROLES[env.learner] != "attacker":
+        raise SystemExit(f"defender_stalls: {args.run_dir} trains a {ROLES[env.learner]}")
+    if args.policy == "checkpoint":
+        path = checkpoint_path(args.run_dir, args.ckpt)
+        state = load_checkpoint(path)
+        lone = saved_interface(state)["attackers"] == 1 and env.num_attackers > 1
+        features = check_policy_fits(state, cfg, env, path, lone_in_team=lone)
+        policy = actor_from_state(state, env.drone_action_spec, "cpu", env.group, features)
+    else:
+        policy = make_scripted_policy(args.policy, env)
+    results = evaluate(env, policy, record=True)
+    env.close()
+
+    period = float(cfg.env.control_period)
+    k = env.num_attackers
+    positions = results.positions  # (E, T + 1, drones, 3): attackers, then defenders
+    defender, attackers = positions[:, :, k], positions[:, :, :k]
+    speed = (defender[:, 1:] - defender[:, :-1]).norm(dim=-1) / period  # (E, T)
+    nearest = (attackers - defender.unsqueeze(2)).norm(dim=-1).amin(-1)  # (E, T + 1)
+    first, shortest = round(args.after / period), round(args.seconds / period)
+    strategy = split["defender_strategy"][:, 0]
+
+    print(f"{args.policy} ({args.run_dir}, {args.ckpt}) on {n} {args.split} scenarios of "
+          f"{args.scenarios}, {k} attacker(s): stalls under {args.speed:g} m/s for "
+          f"{args.seconds:g} s or more, from {args.after:g} s on\n")  # fmt: skip
+    print("| defenders | episodes | with a stall | median stall (s) | nearest attacker at its "
+          "start / end (m, medians) | captured: with a stall / without |")  # fmt: skip
+    print("|---|---|---|---|---|---|")
+    for name in ("setpoints", "nn"):
+        rows = (strategy == STRATEGIES.index(name)).nonzero().squeeze(-1).tolist()
+        if not rows:
+            continue
+        lengths, starts, ends, stalled = [], [], [], []
+        for e in rows:
+            found = stalls(speed[e] < args.speed, first, int(results.length[e]), shortest)
+            stalled.append(bool(found))
+            for a, b in found:
+                lengths.append((b - a) * period)
+                starts.append(float(nearest[e, a]))
+                ends.append(float(nearest[e, b]))
+        captured = results.captured[rows]
+        with_stall = torch.tensor(stalled, dtype=torch.bool)
+        rates = f"{rate(captured, with_stall)} / {rate(captured, ~with_stall)}"
+        print(f"| {name} | {len(rows)} | {int(with_stall.sum())} | {median(lengths)} | "
+              f"{median(starts)} / {median(ends)} | {rates} |")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
