@@ -66,6 +66,13 @@ def positive(text: str) -> float:
     return value
 
 
+def non_negative(text: str) -> float:
+    value = float(text)
+    if not 0 <= value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a number >= 0, got {text!r}")
+    return value
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dir", type=Path, help="an attacker's training run")
@@ -77,7 +84,7 @@ def main() -> None:
     )
     parser.add_argument("--speed", type=positive, default=0.5, help="m/s, slower is a stall")
     parser.add_argument("--seconds", type=positive, default=5.0, help="s, a stall's least length")
-    parser.add_argument("--after", type=positive, default=2.0, help="s, from the start")
+    parser.add_argument("--after", type=non_negative, default=2.0, help="s, from the start")
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
 
@@ -91,6 +98,8 @@ def main() -> None:
                          num_envs=eval_num_envs(cfg, n))  # fmt: skip
     if ROLES[env.learner] != "attacker":
         raise SystemExit(f"defender_stalls: {args.run_dir} trains a {ROLES[env.learner]}")
+    if env.num_defenders != 1:
+        raise SystemExit(f"defender_stalls: one defender per scenario, got {env.num_defenders}")
     if args.policy == "checkpoint":
         path = checkpoint_path(args.run_dir, args.ckpt)
         state = load_checkpoint(path)

@@ -24,7 +24,7 @@ def test_sac_learns_an_easy_pursuit_from_scratch(easy_pursuit, tmp_path, record_
             f"scenarios_dir={tmp_path}",
             "env.time_limit=20",
             # The budget in frames only: a wall-clock budget trains less on a slower or busier
-            # machine (a loaded 2-core machine reached 10240 of the 60000 frames in 2.5 min).
+            # machine (a loaded 2-core machine once reached 10,240 frames in 2.5 min).
             "train.max_minutes=null",
             # It validates at 1.0 from 24,576 frames on (a 2-core CPU, one or two threads): two
             # validations to spare for a machine that rounds otherwise and learns later.
