@@ -9,7 +9,8 @@ those with a stall, the stalls' median length and the nearest attacker's median 
 stall's start and end, and the capture rates of the episodes with and without one.
 
     .venv/bin/python benchmarks/defender_stalls.py RUN_DIR --scenarios data/scenarios/pursuit2v1 \\
-        [--split test] [--policy checkpoint|proportional_navigation] [--speed 0.5] [--seconds 5]
+        [--split test] [--policy checkpoint|proportional_navigation|pure_pursuit|route_intercept]
+        [--speed 0.5] [--seconds 5] [--after 2]
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from rlplat.agents.policies import make_scripted_policy
 from rlplat.envs.pursuit import ROLES
 from rlplat.eval.episodes import evaluate
 from rlplat.experiment.evaluation import (
+    baseline_args,
     check_policy_fits,
     checkpoint_path,
     load_run_config,
@@ -80,7 +82,9 @@ def main() -> None:
     parser.add_argument("--split", default="test", choices=("train", "val", "test"))
     parser.add_argument("--ckpt", default="best", choices=("best", "last"))
     parser.add_argument(
-        "--policy", default="checkpoint", choices=("checkpoint", "proportional_navigation")
+        "--policy",
+        default="checkpoint",
+        choices=("checkpoint", "proportional_navigation", "pure_pursuit", "route_intercept"),
     )
     parser.add_argument("--speed", type=positive, default=0.5, help="m/s, slower is a stall")
     parser.add_argument("--seconds", type=positive, default=5.0, help="s, a stall's least length")
@@ -88,9 +92,9 @@ def main() -> None:
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
 
-    cfg = load_run_config(args.run_dir)
-    if args.policy != "checkpoint":
-        cfg = plain_action(cfg)  # the baselines fly the plain velocity action
+    run_cfg = load_run_config(args.run_dir)
+    # The baselines fly the plain velocity action (route_intercept: the run's law), as evaluate.py
+    cfg = run_cfg if args.policy == "checkpoint" else plain_action(run_cfg)
     scenarios = resolve_scenarios(cfg, args.scenarios)
     split = scenarios.split(args.split)
     n = len(split)
@@ -107,7 +111,7 @@ def main() -> None:
         features = check_policy_fits(state, cfg, env, path, lone_in_team=lone)
         policy = actor_from_state(state, env.drone_action_spec, "cpu", env.group, features)
     else:
-        policy = make_scripted_policy(args.policy, env)
+        policy = make_scripted_policy(args.policy, env, **baseline_args(args.policy, run_cfg))
     results = evaluate(env, policy, record=True)
     env.close()
 
