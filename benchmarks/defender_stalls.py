@@ -124,14 +124,15 @@ def main() -> None:
     first, shortest = round(args.after / period), round(args.seconds / period)
     strategy = split["defender_strategy"][:, 0]
 
-    print(f"{args.policy} ({args.run_dir}, {args.ckpt}) on {n} {args.split} scenarios of "
+    flown = f"{args.run_dir}, {args.ckpt}" if args.policy == "checkpoint" else args.run_dir
+    print(f"{args.policy} ({flown}) on {n} {args.split} scenarios of "
           f"{args.scenarios}, {k} attacker(s): stalls under {args.speed:g} m/s for "
           f"{args.seconds:g} s or more, from {args.after:g} s on\n")  # fmt: skip
     print("| defenders | episodes | with a stall | median stall (s) | nearest attacker at its "
           "start / end (m, medians) | captured: with a stall / without |")  # fmt: skip
     print("|---|---|---|---|---|---|")
-    for name in ("setpoints", "nn"):
-        rows = (strategy == STRATEGIES.index(name)).nonzero().squeeze(-1).tolist()
+    for index, name in enumerate(STRATEGIES):
+        rows = (strategy == index).nonzero().flatten().tolist()
         if not rows:
             continue
         lengths, starts, ends, stalled = [], [], [], []
