@@ -9,9 +9,12 @@ from rlplat.experiment.command_line import hydra_main
 
 
 def check(cfg: DictConfig) -> None:
+    from rlplat.experiment.factory import check_scenarios_dir
     from rlplat.experiment.schema import validate_train_config
+    from rlplat.scenarios import SPLITS
 
     validate_train_config(cfg)
+    check_scenarios_dir(cfg, SPLITS, "training")  # before Hydra makes the run directory
 
 
 @hydra_main("train", check)

@@ -219,6 +219,27 @@ def test_cli_train_evaluate_compare_round_trip(trained_run, scenarios, run_pytho
     assert (run / "eval" / "compare-test.png").read_bytes()[:4] == b"\x89PNG"
 
 
+def test_compare_on_a_set_without_route_flyers_has_no_capture_ceiling_section(
+    trained_run, tmp_path, write_small_set
+):
+    # The capture ceiling covers route-flying defenders: on a set of network defenders alone it
+    # is not defined, and the report says nothing of it rather than "nan of 0".
+    held = write_small_set(
+        tmp_path / "set", "scenario.strategy_mix.nn=1.0", "scenario.strategy_mix.setpoints=0.0"
+    )
+    cfg = compose_config("evaluate", [
+        f"run_dir={trained_run}", f"scenarios_dir={held.path}", "split=val", "compare=true",
+        "plots=false", f"out_dir={tmp_path / 'ev'}",
+    ])  # fmt: skip
+    evaluate_from_config(cfg)
+    report = (tmp_path / "ev" / "compare-val.md").read_text()
+    assert "## Against the capture ceiling" not in report and "nan" not in report
+    route = report.split("## Against the route ceiling")[1].split("\n## ")[0]
+    table = [line for line in route.splitlines() if line.startswith("|")]
+    assert table[0] == "| defender | all | nn |" and table[1] == "|---|---|---|"
+    assert all(line.count("|") == 4 for line in table), table
+
+
 def test_compare_mode_flies_every_baseline_in_one_command(trained_run):
     cfg = compose_config(
         "evaluate", [f"run_dir={trained_run}", "split=val", "compare=true", "plots=false"]

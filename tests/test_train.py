@@ -461,7 +461,39 @@ def test_a_set_with_an_empty_split_is_refused_before_any_work(
         f"error: scenarios_dir: {held.path} has no {empty} scenarios; training needs the "
         "train/val/test splits"
     )
-    assert not (run / "checkpoints").exists()
+    assert not run.exists()  # refused before Hydra made the run directory
+
+
+def test_a_scenarios_dir_without_a_set_is_one_line_naming_it_before_any_work(
+    tmp_path, tiny, train_cli
+):
+    run = tmp_path / "run"
+    res = train_cli(*tiny, f"scenarios_dir={tmp_path / 'nowhere'}", f"hydra.run.dir={run}")
+    assert res.returncode == 2
+    assert res.stderr.strip().splitlines()[-1] == (
+        f"error: scenarios_dir: {tmp_path / 'nowhere' / 'manifest.json'}: missing file of the "
+        "scenario set"
+    )
+    assert not run.exists()
+
+
+def test_a_run_on_a_scenarios_dir_flies_and_records_the_sets_scenario(
+    tmp_path, write_small_set, tiny_run, caplog
+):
+    # The composed scenario node is not what flies: the set's config is, the vision ellipsoid
+    # its starts were drawn in included, and config.yaml says so.
+    held = write_small_set(
+        tmp_path / "set", "scenario.vision_semi_axes=[60.0,50.0,15.0]", "scenario.seed=3"
+    )
+    with caplog.at_level("WARNING", logger="rlplat.experiment.factory"):
+        tiny_run(held, tmp_path / "run", "scenario=pursuit_2v1")
+    assert "scenario: the set in scenarios_dir=" in caplog.text
+    assert "attackers, " in caplog.text and "vision_semi_axes" in caplog.text
+    saved = OmegaConf.load(tmp_path / "run" / "config.yaml")
+    assert saved.scenario.vision_semi_axes == [60.0, 50.0, 15.0]
+    assert saved.scenario.seed == 3 and saved.scenario.attackers == 1
+    assert saved.env.vision_semi_axes == [60.0, 50.0, 15.0]
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["attackers"] == 1
 
 
 def test_cli_unknown_override_is_refused_in_one_line_before_any_work(tmp_path, train_cli):

@@ -126,8 +126,8 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
 def ceiling_table(summaries: list[dict[str, Any]]) -> str | None:
     """Capture rates against the capture ceiling (:mod:`rlplat.eval.ceiling`) on the scenarios
     it covers (route-flying defenders), per speed-ratio bin; None if no summary has it."""
-    if not summaries or "ceiling" not in summaries[0]:
-        return None
+    if not summaries or not summaries[0].get("ceiling", {}).get("scenarios"):
+        return None  # not recorded, or no scenario it covers (network defenders, several ones)
     bins = [b for b, v in summaries[0]["by_speed_ratio"].items() if v["ceiling"]["scenarios"]]
     return _bound_table(
         summaries, "ceiling", "by_speed_ratio", bins,
@@ -160,23 +160,21 @@ def _bound_table(
         value = stats[block].get(key)
         return "–" if value is None else f"{value:.3f}"
 
+    def row(*cells: Any) -> str:
+        return "| " + " | ".join(str(c) for c in cells) + " |"
+
     first = summaries[0]
     lines = [
-        f"| {head} | all | " + " | ".join(groups) + " |",
+        row(head, "all", *groups),
         "|---|" + "---|" * (len(groups) + 1),
-        f"| scenarios | {first[block]['scenarios']} | "
-        + " | ".join(str(first[by][g][block]["scenarios"]) for g in groups)
-        + " |",
-        f"| {label} | {cell(first, 'interceptable_rate')} | "
-        + " | ".join(cell(first[by][g], "interceptable_rate") for g in groups)
-        + " |",
-    ]
+        row("scenarios", first[block]["scenarios"],
+            *(first[by][g][block]["scenarios"] for g in groups)),
+        row(label, cell(first, "interceptable_rate"),
+            *(cell(first[by][g], "interceptable_rate") for g in groups)),
+    ]  # fmt: skip
     for s in summaries:
-        lines.append(
-            f"| {policy_label(s)} | {cell(s, 'capture_rate')} | "
-            + " | ".join(cell(s[by][g], "capture_rate") for g in groups)
-            + " |"
-        )
+        rates = (cell(s[by][g], "capture_rate") for g in groups)
+        lines.append(row(policy_label(s), cell(s, "capture_rate"), *rates))
     return "\n".join(lines)
 
 

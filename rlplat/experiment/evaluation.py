@@ -504,8 +504,13 @@ def split_ceiling(cfg, env_cfg, env: PursuitEnv, scenarios, split: str, device):
 
     plain = env_cfg.action.get("name") == "velocity"
     ceiling = ceiling_of(env if plain else plain_env(scenarios))
-    log.info("capture ceiling on %s: %.3f of %d scenarios with a route-flying defender",
-             split, ceiling.rate, int(ceiling.defined.sum()))  # fmt: skip
+    if env.num_defenders > 1 or not bool(ceiling.defined.any()):
+        log.info("capture ceiling on %s: not defined (%s)", split,
+                 "several defenders" if env.num_defenders > 1
+                 else "no scenario with a route-flying defender")  # fmt: skip
+    else:
+        log.info("capture ceiling on %s: %.3f of %d scenarios with a route-flying defender",
+                 split, ceiling.rate, int(ceiling.defined.sum()))  # fmt: skip
     if bool(ceiling.defined.all()) or env.num_defenders > 1:
         return ceiling.interceptable, ceiling.interceptable  # nothing reacts, or no ceiling
     route = ceiling_of(plain_env(route_flown(scenarios)))

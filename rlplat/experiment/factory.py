@@ -5,6 +5,7 @@ With ``dynamics=airsim`` an env batch is one env per simulator, in parallel work
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import logging
@@ -14,14 +15,14 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from rlplat.agents.policies import load_controller
 from rlplat.envs.components import ACTIONS, OBSERVATIONS, Reward
 from rlplat.envs.dynamics import DYNAMICS, DroneDynamics
 from rlplat.envs.parallel import PursuitParallelEnv, worker_env
 from rlplat.envs.pursuit import PursuitEnv, flown_attackers
-from rlplat.errors import ConfigError
+from rlplat.errors import ConfigError, ScenarioFileError
 from rlplat.experiment.rules import keyword_parameters
 from rlplat.scenarios import STRATEGIES, ScenarioSet, ScenarioSpec, write_scenario_set
 
@@ -58,7 +59,10 @@ def resolve_scenarios(cfg: DictConfig, scenarios: ScenarioSet | str | os.PathLik
     if isinstance(scenarios, ScenarioSet):
         return scenarios
     if scenarios is not None:
-        return ScenarioSet.load(scenarios)
+        try:
+            return ScenarioSet.load(scenarios)
+        except ScenarioFileError as e:  # the field the user set, then what is wrong there
+            raise ScenarioFileError(f"scenarios_dir: {e}") from None
     spec = ScenarioSpec.from_dict(OmegaConf.to_container(cfg.scenario, resolve=True))
     key = hashlib.sha256(json.dumps(spec.to_dict(), sort_keys=True).encode()).hexdigest()[:16]
     path = CACHE_DIR / "scenarios" / key
@@ -66,6 +70,28 @@ def resolve_scenarios(cfg: DictConfig, scenarios: ScenarioSet | str | os.PathLik
         log.info("generating the configured scenario set into %s", path)
         write_scenario_set(spec, path)
     return ScenarioSet.load(path)
+
+
+def with_set_scenario(cfg: DictConfig, scenarios: ScenarioSet) -> DictConfig:
+    """``cfg`` with its ``scenario`` node replaced by the config ``scenarios`` was generated
+    with (a set loaded from ``scenarios_dir``), so that what reads it (``env.vision_semi_axes``,
+    the run's ``config.yaml``) follows the set flown; a composed ``scenario`` that differs is
+    not flown, and a warning names how it differs. ``cfg`` itself is left as it is."""
+    if scenarios.spec is None:
+        return cfg
+    flown = scenarios.spec.to_dict()
+    composed = ScenarioSpec.from_dict(OmegaConf.to_container(cfg.scenario, resolve=True)).to_dict()
+    differ = sorted(k for k in {*flown, *composed} if flown.get(k) != composed.get(k))
+    if differ:
+        log.warning(
+            "scenario: the set in scenarios_dir=%s was generated with another scenario config "
+            "(%s differ); the run flies the set and records its config, not the composed one",
+            scenarios.path, ", ".join(differ),
+        )  # fmt: skip
+    cfg = cfg.copy()
+    with open_dict(cfg):  # every field, the team ones of a 1-vs-1 set too, as composed
+        cfg.scenario = OmegaConf.create(json.loads(json.dumps(dataclasses.asdict(scenarios.spec))))
+    return cfg
 
 
 def require_scenarios(scenarios: ScenarioSet, splits: Sequence[str], needed_by: str) -> None:
@@ -77,6 +103,13 @@ def require_scenarios(scenarios: ScenarioSet, splits: Sequence[str], needed_by: 
                 f"scenarios_dir: {scenarios.path} has no {split} scenarios; {needed_by} needs "
                 f"the {'/'.join(splits)} split{'s' if len(splits) > 1 else ''}"
             )
+
+
+def check_scenarios_dir(cfg: DictConfig, splits: Sequence[str], needed_by: str) -> None:
+    """Refuse, in one line naming ``scenarios_dir``, a set there that does not load or has no
+    scenario in one of ``splits``: a command line's check, before any work starts."""
+    if cfg.get("scenarios_dir") is not None:
+        require_scenarios(resolve_scenarios(cfg, cfg.scenarios_dir), splits, needed_by)
 
 
 def build_env(

@@ -56,6 +56,7 @@ from rlplat.experiment.factory import (
     build_eval_env,
     require_scenarios,
     resolve_scenarios,
+    with_set_scenario,
 )
 from rlplat.experiment.logger import Metrics, make_logger
 from rlplat.experiment.schema import check_resume, validate_train_config
@@ -126,6 +127,10 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     """
     # Check everything before any work starts.
     validate_train_config(cfg)
+    scenarios = resolve_scenarios(cfg, cfg.scenarios_dir)
+    require_scenarios(scenarios, SPLITS, "training")  # it validates, and tests at its end
+    if cfg.scenarios_dir is not None:
+        cfg = with_set_scenario(cfg, scenarios)  # the set's config: what it flies, recorded
     run_dir, algo = make_run_dir(run_dir), cfg.algo
     config = OmegaConf.to_container(cfg, resolve=True)
     resume_state = load_resume_state(run_dir, config) if cfg.resume else None
@@ -137,8 +142,6 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     device = torch.device(cfg.train.device)
 
     # Create the environments
-    scenarios = resolve_scenarios(cfg, cfg.scenarios_dir)
-    require_scenarios(scenarios, SPLITS, "training")  # it validates, and tests at its end
     evaders = network_defenders(scenarios, algo.evader_weight)
     demonstration_plays = [checked_plays(cfg, scenarios, path) for path in algo.demonstrations]
     env = build_env(cfg, scenarios=scenarios, split="train", num_envs=algo.num_envs, device=device)
