@@ -109,6 +109,32 @@ def test_splits_have_alike_distributions_on_a_large_set(make_spec):
                 assert abs(n_here - share * n_all) <= 2, (s, r, k)
 
 
+def test_quality_report_asks_only_for_bins_that_hold_a_grid_value(make_spec):
+    # Speeds 3.0-3.1 on a 0.1 grid: two values, ten bins. The eight bins between them can never
+    # be filled, so the speed is complete once both values occur; a bin that holds a value and
+    # no scenario still counts as missing.
+    from rlplat.scenarios import quality_report
+
+    narrow = ("low=3.0", "high=3.1", "resolution=0.1")
+    spec = make_spec("scenario.n_train=200", "scenario.n_val=50", "scenario.n_test=50",
+                     *(f"scenario.params.attacker_max_speed.{x}" for x in narrow))  # fmt: skip
+    splits = generate(spec)
+
+    def speed_bins(comp):
+        return [m for m in comp["missing"] if "attacker_max_speed" in m]
+
+    assert speed_bins(quality_report(spec, splits)["completeness"]) == []
+    i = spec.param_names.index("attacker_max_speed")
+    val = splits["val"]
+    keep = val.values[:, i] < 3.05  # drop every val scenario at 3.1
+    splits["val"] = dataclasses.replace(
+        val, ids=[x for x, k in zip(val.ids, keep, strict=True) if k],
+        values=val.values[keep], route=val.route[keep], strategy=val.strategy[keep],
+    )  # fmt: skip
+    missing = speed_bins(quality_report(spec, splits)["completeness"])
+    assert missing == ["val: attacker_max_speed bin [3.09, 3.1]"]
+
+
 def test_quality_report_lists_missing_bins_of_a_tiny_split(make_spec, tmp_path):
     manifest = write_scenario_set(
         make_spec("scenario.n_train=200", "scenario.n_val=3", "scenario.n_test=3"), tmp_path

@@ -66,7 +66,9 @@ def _completeness(spec: ScenarioSpec, splits: dict[str, SplitColumns]) -> dict[s
         for i, (name, p) in enumerate(zip(spec.param_names, spec.param_specs, strict=True)):
             edges = np.linspace(p.low, p.high, spec.quality_bins + 1)
             counts, _ = np.histogram(cols.values[:, i], bins=edges)
-            for b in np.flatnonzero(counts == 0):
+            # A bin that holds no grid value (narrower than the resolution) cannot be filled.
+            grid, _ = np.histogram(p.low + np.arange(p.levels) * p.resolution, bins=edges)
+            for b in np.flatnonzero((counts == 0) & (grid > 0)):
                 missing.append(f"{split}: {name} bin [{edges[b]:.4g}, {edges[b + 1]:.4g}]")
     return {"complete": not missing, "bins": spec.quality_bins, "missing": missing}
 
