@@ -346,6 +346,18 @@ def test_missing_file_and_other_schema_are_refused(make_spec, tmp_path):
         ScenarioSet.load(tmp_path / "nowhere")
 
 
+def test_a_count_that_is_not_an_integer_is_named_as_such(make_spec, tmp_path):
+    write_scenario_set(make_spec(*SMALL), tmp_path)
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    count = manifest["splits"]["test"]["count"]
+    manifest["splits"]["test"]["count"] = str(count)
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(
+        ScenarioFileError, match=rf"the manifest's count must be an integer, got '{count}'$"
+    ):
+        ScenarioSet.load(tmp_path)
+
+
 def _rewrite(where: Path, split: str, edit) -> None:
     """Edit the records of ``split`` (``edit(records) -> records``) and hash the file into the
     manifest again: a hand-made set, as the loader sees it."""

@@ -474,8 +474,18 @@ def test_a_team_run_and_a_lone_run_evaluate_on_the_same_defenders(team_sets, tmp
     refused = r"trained with attackers=1, this evaluation flies .*lone_in_team=true flies it"
     with pytest.raises(ConfigError, match=refused):
         evaluate_run(lone, scenarios_dir=team_sets[2, 1].path, out_dir=tmp_path / "g", **kwargs)
+    with pytest.raises(ConfigError, match=r"^ensemble: .* was trained with attackers=1, "):
+        evaluate_run(team, ensemble=[lone], out_dir=tmp_path / "e", **kwargs)
+    # export.py chooses the team by its scenarios_dir alone: the refusal names only that.
+    from rlplat.experiment.export import export_run
+
+    only = r"^ckpt: .* with attackers=1, this evaluation flies attackers=2 \(scenarios_dir\)$"
+    with pytest.raises(ConfigError, match=only):
+        export_run(lone, scenarios_dir=team_sets[2, 1].path, out_dir=tmp_path / "ex")
+    assert not (tmp_path / "ex").exists()
     # Only a checkpoint trained alone flies each seat of a team.
-    with pytest.raises(ConfigError, match=r"^lone_in_team: .*trained with attackers=2, this"):
+    trained_in_a_team = r"^lone_in_team: .* trained alone .* trained in a team, with attackers=2$"
+    with pytest.raises(ConfigError, match=trained_in_a_team):
         evaluate_run(team, lone_in_team=True, out_dir=tmp_path / "h", **kwargs)
 
 
@@ -534,8 +544,11 @@ def test_a_lone_checkpoint_flies_each_seat_of_a_team(team_sets, tmp_path, tiny_r
     assert "team_speed_ratio" in ev.rows[0]
     first = evaluate_run(lone, attackers=1, out_dir=tmp_path / "first", **kwargs)
     assert first.summary["lone_in_team"] is False
-    with pytest.raises(ConfigError, match=r"^lone_in_team: .*this evaluation flies attackers=1$"):
+    no_team = r"^lone_in_team: .* flies attackers=1, no team \(scenarios_dir, attackers\)$"
+    with pytest.raises(ConfigError, match=no_team):
         evaluate_run(lone, lone_in_team=True, attackers=1, out_dir=tmp_path / "x", **kwargs)
+    with pytest.raises(ConfigError, match=r"^attackers: 3, the scenarios have 2 \(at most\)$"):
+        evaluate_run(lone, attackers=3, out_dir=tmp_path / "y", **kwargs)
 
     # A lone defender in each seat of a pair (its observation has no in-play flags, the pair's has).
     guard = tiny_run(team_sets[1, 1], tmp_path / "d1", "drone=defender_v1")["run_dir"]

@@ -159,7 +159,14 @@ def artifact_policy(
 
 
 def check_policy_fits(
-    state: dict[str, Any], cfg: DictConfig, env: PursuitEnv, path, lone_in_team: bool = False
+    state: dict[str, Any],
+    cfg: DictConfig,
+    env: PursuitEnv,
+    path,
+    lone_in_team: bool = False,
+    *,
+    field: str = "ckpt",
+    settings: str = "scenarios_dir, attackers, lone_in_team",
 ) -> list[int] | None:
     """Refuse a checkpoint whose team sizes, network sizes or drone interface differ from the
     env it would fly in (the run's config, on the scenarios and attackers asked for), or
@@ -168,29 +175,35 @@ def check_policy_fits(
     With ``lone_in_team`` the checkpoint must have been trained alone (one drone of the
     learning role) and the env must fly a team of that role against as many opponents; each
     drone then flies it on its observation's ``lone_features``, which this returns (None
-    otherwise)."""
-    check_route_path(state, env, path, "ckpt")
+    otherwise). A refusal names ``field`` (where the checkpoint came from) and, for team sizes,
+    the ``settings`` of the command that choose them."""
+    check_route_path(state, env, path, field)
     interface = saved_interface(state)
     interface.pop("route_path", None)
     counts = {"attackers": env.num_attackers, "defenders": env.num_defenders}
     learners = "attackers" if ROLES[env.learner] == "attacker" else "defenders"
     saved_defenders = interface["defenders"]
     if lone_in_team:
-        if interface[learners] != 1 or counts[learners] < 2:
+        if interface[learners] != 1:
             raise ConfigError(
-                f"lone_in_team: flies a checkpoint trained with one of the {learners} in each "
-                f"seat of a team; {path} was trained with {learners}={interface[learners]}, "
-                f"this evaluation flies {learners}={counts[learners]}"
+                f"lone_in_team: flies a checkpoint trained alone in each seat of a team; "
+                f"{path} was trained in a team, with {learners}={interface[learners]}"
+            )
+        if counts[learners] < 2:
+            raise ConfigError(
+                f"lone_in_team: flies each seat of a team of {learners}, but this evaluation "
+                f"flies {learners}={counts[learners]}, no team (scenarios_dir, attackers)"
             )
         counts[learners] = 1  # the team's size is checked; each seat flies alone
     for key, value in counts.items():
         saved = interface.pop(key)
         if saved != value:
-            lone = key == learners and saved == 1
+            lone = key == learners and saved == 1 and "lone_in_team" in settings
             hint = "; lone_in_team=true flies it in each seat" if lone else ""
+            chosen = ", ".join(x for x in settings.split(", ") if x != "lone_in_team")
             raise ConfigError(
-                f"ckpt: {path} was trained with {key}={saved}, this evaluation flies "
-                f"{key}={value} (scenarios_dir, attackers{hint})"
+                f"{field}: {path} was trained with {key}={saved}, this evaluation flies "
+                f"{key}={value} ({chosen}{hint})"
             )
     # In-play flags come with more than one defender (caught one by one): a lone defender's
     # observation has none, a lone attacker's against two defenders has them.
@@ -200,14 +213,16 @@ def check_policy_fits(
     for key, value in sizes.items():
         if state["net"][key] != value:
             raise ConfigError(
-                f"ckpt: {path} has {key}={state['net'][key]}, the run's drone config "
+                f"{field}: {path} has {key}={state['net'][key]}, the run's drone config "
                 f"(observation={cfg.observation.name}, action={cfg.action.name}) "
                 f"gives {key}={value}"
             )
     for key, saved in interface.items():
         value = OmegaConf.select(cfg, key)
         if saved != value:
-            raise ConfigError(f"ckpt: {path} was trained with {key}={saved}, the run has {value}")
+            raise ConfigError(
+                f"{field}: {path} was trained with {key}={saved}, the run has {value}"
+            )
     return features
 
 
@@ -337,6 +352,11 @@ def evaluate_run(
     # A baseline flies its own velocity commands (eq. 2), not through a learner's action.
     env_cfg = cfg if learned else plain_action(cfg)
     policy_args = {} if learned else baseline_args(policy, cfg)
+    counted = isinstance(attackers, int) and not isinstance(attackers, bool)
+    if counted and attackers > scenarios.attackers:  # named as this command's setting
+        raise ConfigError(
+            f"attackers: {attackers}, the scenarios have {scenarios.attackers} (at most)"
+        )
     overrides = {} if attackers is None else {"attackers": attackers}
     env = build_eval_env(
         env_cfg, scenarios=scenarios, split=split, num_envs=eval_num_envs(cfg, n),
@@ -353,7 +373,8 @@ def evaluate_run(
                 actors = [actor]
                 for member_path, member_cfg in members:
                     member = load_checkpoint(member_path)
-                    check_policy_fits(member, member_cfg, env, member_path, lone_in_team)
+                    check_policy_fits(member, member_cfg, env, member_path, lone_in_team,
+                                      field="ensemble")  # fmt: skip
                     actors.append(
                         actor_from_state(member, env.drone_action_spec, device, env.group, features)
                     )

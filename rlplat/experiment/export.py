@@ -393,7 +393,8 @@ def export_run(
     require_scenarios(scenarios, [split], "the export's rollouts")
     n = len(scenarios.split(split))
     env = build_eval_env(src.cfg, scenarios=scenarios, split=split, num_envs=n)
-    check_policy_fits(src.state, src.cfg, env, src.path)
+    check_policy_fits(src.state, src.cfg, env, src.path, settings="scenarios_dir",
+                      field="ckpt" if controller is None else "controller")  # fmt: skip
     actor = DeterministicActor.from_state(src.state)
     actor.layers()  # a layer the C generator does not know fails here
 

@@ -172,6 +172,8 @@ def _records(data: bytes, spec: ScenarioSpec, where: Path, count: Any) -> list[d
             raise ScenarioFileError(f"{at}: id {rec['id']!r} repeats line {seen[rec['id']]}")
         seen[rec["id"]] = number
         records.append(rec)
+    if isinstance(count, bool) or not isinstance(count, int):
+        raise ScenarioFileError(f"{where}: the manifest's count must be an integer, got {count!r}")
     if count != len(records):
         raise ScenarioFileError(
             f"{where}: {len(records)} scenarios, the manifest's count says {count!r}"
