@@ -464,8 +464,8 @@ def test_a_set_with_an_empty_split_is_refused_before_any_work(
     assert not run.exists()  # refused before Hydra made the run directory
 
 
-def test_a_scenarios_dir_without_a_set_is_one_line_naming_it_before_any_work(
-    tmp_path, tiny, train_cli
+def test_a_scenarios_dir_the_run_cannot_fly_is_one_line_before_any_work(
+    tmp_path, scenarios, tiny, train_cli
 ):
     run = tmp_path / "run"
     res = train_cli(*tiny, f"scenarios_dir={tmp_path / 'nowhere'}", f"hydra.run.dir={run}")
@@ -473,6 +473,14 @@ def test_a_scenarios_dir_without_a_set_is_one_line_naming_it_before_any_work(
     assert res.stderr.strip().splitlines()[-1] == (
         f"error: scenarios_dir: {tmp_path / 'nowhere' / 'manifest.json'}: missing file of the "
         "scenario set"
+    )
+    assert not run.exists()
+    # a set of one attacker, asked to fly two
+    res = train_cli(*tiny, f"scenarios_dir={scenarios.path}", "env.attackers=2",
+                    f"hydra.run.dir={run}")  # fmt: skip
+    assert res.returncode == 2
+    assert res.stderr.strip().splitlines()[-1] == (
+        "error: env.attackers: 2, the scenarios have 1 (at most)"
     )
     assert not run.exists()
 
