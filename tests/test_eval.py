@@ -437,7 +437,18 @@ def test_another_scenario_set_warns_or_is_refused(trained_run, write_small_set, 
         ev = evaluate_run(trained_run, split="val", scenarios_dir=other, out_dir=tmp_path / "w",
                           plots=False)  # fmt: skip
     assert "the run trained with" in caplog.text and "evaluating anyway" in caplog.text
+    assert "env.vision_semi_axes" not in caplog.text  # drawn in the ellipsoid the run sees
     assert ev.summary["scenario_digest_matches"] is False
+    wide = tmp_path / "wide"
+    write_small_set(wide, "scenario.vision_semi_axes=[60.0,50.0,15.0]")
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="rlplat.eval.run"):
+        evaluate_run(trained_run, split="val", scenarios_dir=wide, out_dir=tmp_path / "v",
+                     plots=False)  # fmt: skip
+    assert (
+        "env.vision_semi_axes: the run sees within [48.0, 42.0, 13.0] m, the set's starts were "
+        "drawn within [60.0, 50.0, 15.0] m; evaluating with the run's"
+    ) in caplog.text
     with pytest.raises(ConfigError, match=r"scenarios: the set at .*other has digest .* the run "
                        r"trained with .*strict_scenarios=true refuses it"):  # fmt: skip
         evaluate_run(

@@ -347,6 +347,11 @@ def evaluate_run(
     expected = run_summary.get("scenario_digest") or (state or {}).get("scenario_digest")
     source = "summary.json" if "scenario_digest" in run_summary else "checkpoint"
     same_set = check_scenarios(scenarios, expected, strict_scenarios, source)
+    drawn = None if scenarios.spec is None else list(scenarios.spec.vision_semi_axes)
+    if drawn is not None and drawn != list(cfg.env.vision_semi_axes):
+        log.warning("env.vision_semi_axes: the run sees within %s m, the set's starts were "
+                    "drawn within %s m; evaluating with the run's", list(cfg.env.vision_semi_axes),
+                    drawn)  # fmt: skip
     require_scenarios(scenarios, [split], "the evaluation")
     n = len(scenarios.split(split))
     # A baseline flies its own velocity commands (eq. 2), not through a learner's action.
