@@ -282,6 +282,14 @@ def test_a_move_the_simulator_refuses_stops_the_step(server):
     client.continue_for(0.1, "the test")
     (state,), _ = client.read(["Attacker"], "the test")  # a later move that flies: no error
     assert state.velocity[0] > 0.0
+    # Integers given by a caller go out as the floats AirSim's parameters are.
+    server.start_recording()
+    client.move_velocity("Attacker", (1, 0, 0), 1)
+    client.set_position("Attacker", (0, 0, -2))
+    client.continue_for(0.1, "the test")
+    calls = {r["call"]: r["params"] for r in server.take_recording() if "call" in r}
+    assert [type(x) for x in calls["moveByVelocity"][:4]] == [float] * 4
+    assert all(type(v) is float for v in calls["simSetVehiclePose"][0]["position"].values())
     client.close()
 
 

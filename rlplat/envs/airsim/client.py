@@ -581,7 +581,8 @@ class AirSimClient:
         """Place ``name`` at ``position_ned`` (its spawn-relative NED frame), level, with
         collisions ignored for the placement."""
         lib = self._lib
-        pose = lib.Pose(lib.Vector3r(*plain(list(position_ned))), lib.Quaternionr())
+        x, y, z = (float(v) for v in plain(list(position_ned)))  # Vector3r's fields are floats
+        pose = lib.Pose(lib.Vector3r(x, y, z), lib.Quaternionr())
         self.call("simSetVehiclePose", f"placing {name}", self._api.simSetVehiclePose,
                   pose, True, name)  # fmt: skip
 
@@ -589,7 +590,7 @@ class AirSimClient:
         """Command ``name``'s velocity (NED m/s) for ``duration_s`` sim seconds; not awaited
         (a move answers when it ends or the next one cancels it): :meth:`check_moves` reports
         one the simulator refused."""
-        vx, vy, vz = plain(list(velocity_ned))
+        vx, vy, vz = (float(v) for v in plain(list(velocity_ned)))  # floats on the wire
         self._moves[name] = self.send(
             "moveByVelocity", vx, vy, vz, float(duration_s),
             self._lib.DrivetrainType.MaxDegreeOfFreedom, self._lib.YawMode(), name,
