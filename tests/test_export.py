@@ -2,6 +2,7 @@
 observations, timed, and flown through the evaluator (``policy=onnx``, ``policy=c``)."""
 
 import json
+import logging
 import shutil
 import subprocess
 import sys
@@ -457,6 +458,27 @@ def test_flying_the_onnx_export_without_onnxruntime_is_one_line(monkeypatch):
 
 
 # Every learner ----------------------------------------------------------------------------
+
+
+def test_an_actor_with_one_action_everywhere_is_exported_with_a_warning(run, tmp_path, caplog):
+    # An output layer still at zero (a run that stopped before actor_warmup_updates) makes the
+    # three implementations agree trivially: the export says so instead of passing in silence.
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy, ignore=shutil.ignore_patterns("export", "eval"))
+    path = copy / "checkpoints" / "best.pt"
+    state = torch.load(path, weights_only=False)
+    last = max(k for k in state["actor"] if k.endswith(".weight"))
+    state["actor"][last].zero_()
+    state["actor"][last.replace(".weight", ".bias")].zero_()
+    torch.save(state, path)
+    with caplog.at_level(logging.WARNING, logger="rlplat.experiment.export"):
+        export_run(copy, **QUICK)
+    assert "the actor gives one action, [0.0, 0.0, 0.0], on all" in caplog.text
+    assert "tests no network" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="rlplat.experiment.export"):
+        export_run(run, out_dir=tmp_path / "trained", **QUICK)
+    assert "tests no network" not in caplog.text
 
 
 def test_the_shipped_defender_network_exports(scenarios, tmp_path):

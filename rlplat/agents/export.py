@@ -297,6 +297,8 @@ def c_sources(
             [
                 "policy.h: the deterministic policy of an rlplat controller (generated; do not",
                 "edit). C99, no heap, no library but libm (tanhf, expm1f).",
+                "Checked against the network built with cc -O2 -std=c99 -ffp-contract=off: fused",
+                "multiply-adds, x87 or -ffast-math maths round differently (about 1e-5 of action).",
                 "",
                 *describe,
             ]

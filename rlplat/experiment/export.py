@@ -418,6 +418,11 @@ def export_run(
     x = obs.numpy()
     actions = {"torch": torch_actions(src.state, obs), "onnx": onnx_policy(x), "c": c_policy(x)}
     diffs = max_differences(actions)
+    if np.ptp(actions["torch"], axis=0).max() == 0:  # one action for every observation
+        one = actions["torch"][0].tolist()
+        log.warning("export: the actor gives one action, %s, on all %d rollout observations: "
+                    "the equivalence check tests no network (a run that stopped before "
+                    "algo.actor_warmup_updates?)", one, len(x))  # fmt: skip
     worst = max(diffs, key=diffs.get)
     if diffs[worst] > tolerance:
         raise ExportError(
