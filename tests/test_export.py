@@ -358,6 +358,14 @@ def test_a_guided_controller_exports_with_its_guidance(
     if conformity is not None:
         assert conformity["route_lag"] == [0.9, 0.9, 0.35] and conformity["control_period"] == 0.1
     assert header in (out / "policy.h").read_text()
+    # The numbers a host needs to compute the inputs are in the header, not only in the card.
+    text = " ".join(line.lstrip(" *") for line in (out / "policy.h").read_text().splitlines())
+    assert ("route_path, computed by the host:" in text) == (path is not None)
+    if path is not None:
+        assert f"lag 0.9, gain 1, acceptance 1, start_lag {path['start_lag']:g}, horizon" in text
+    assert ("route_conformity, computed by the host:" in text) == (conformity is not None)
+    if conformity is not None:
+        assert "route_lag 0.9 0.9 0.35, conformity_time 1, control_period 0.1" in text
     # Next to the declaration too: the action is not the velocity command.
     assert "action: in [-1, 1]; not the velocity command itself" in (out / "policy.h").read_text()
     ev = evaluate_run(run, policy="c", ckpt="last", plots=False)

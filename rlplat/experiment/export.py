@@ -26,6 +26,7 @@ import json
 import logging
 import os
 import platform
+import textwrap
 import time
 from dataclasses import dataclass
 from importlib.metadata import version
@@ -218,7 +219,18 @@ def describe_lines(src: Source, env, features: list[dict[str, Any]]) -> list[str
     ]
     if getattr(env.action_fn, "guided", False):
         lines += ["", *env.action_fn.describe()]
+    for name, model in host_models(env).items():  # the numbers too, not only card.json's
+        numbers = ", ".join(f"{k} {_number(v)}" for k, v in model.items() if k != "model")
+        lines += ["", *textwrap.wrap(f"{name}, computed by the host: {model['model']}; "
+                                     f"{numbers}.", 76)]  # fmt: skip
     return lines
+
+
+def _number(value: Any) -> str:
+    """A setting in the header: ``0.9``, ``0.9 0.9 0.35``, ``null``."""
+    if isinstance(value, (list, tuple)):
+        return " ".join(_number(v) for v in value)
+    return "null" if value is None else f"{value:g}"
 
 
 def action_line(env) -> str:
@@ -248,6 +260,36 @@ def network_card(actor: DeterministicActor, state: dict[str, Any]) -> dict[str, 
     }
 
 
+def host_models(env) -> dict[str, dict[str, Any]]:
+    """What the caller computes itself for the observation and the law, with its numbers: the
+    meeting point's route path and the route conformity features (none for other drones)."""
+    models: dict[str, dict[str, Any]] = {}
+    path = route_path_interface(env)
+    if path is not None:  # the meeting point the caller computes, from this path
+        models["route_path"] = {
+            "model": "rlplat.envs.kinematics.route_path (velocity lag, setpoint gain, acceptance), "
+            "from the defender's position, velocity, maximum speed and route ahead; the meeting "
+            "point is its earliest point the attacker reaches at full speed per axis after "
+            "start_lag s, within horizon s from now (rlplat.envs.kinematics.route_intercept)",
+            **path,
+            "horizon": env.meeting_horizon,  # the seconds searched (a null setting: the limit)
+        }
+    if getattr(env.obs_fn, "reads_conformity", False):  # features the caller computes, with state
+        models["route_conformity"] = {
+            "model": "route_residual = a - (c - v) * (1 - exp(-dt / route_lag)) / dt per axis, "
+            "a the defender's mean acceleration over the last control period dt, v its velocity "
+            "and c its setpoint follower's command (rlplat.envs.kinematics.follow_route) at the "
+            "period's start (0 from the step after its capture); route_deviation += "
+            "(|route_residual| - route_deviation) * (1 - exp(-dt / conformity_time)), 0 at the "
+            "episode's start",
+            "route_lag": list(env.obs_fn.route_lag),
+            "conformity_time": env.obs_fn.conformity_time,
+            "control_period": env.control_period,
+            "setpoint_gain": env.setpoint_gain,
+        }
+    return models
+
+
 def interface_card(src: Source, env, actor: DeterministicActor, features) -> dict[str, Any]:
     """What the artifacts read and write, feature by feature, and who calls them."""
     action = {
@@ -267,29 +309,7 @@ def interface_card(src: Source, env, actor: DeterministicActor, features) -> dic
         "team": {"attackers": env.num_attackers, "defenders": env.num_defenders,
                  "drones_sharing_the_policy": env.team_size},
     }  # fmt: skip
-    path = route_path_interface(env)
-    if path is not None:  # the meeting point the caller computes, from this path
-        interface["route_path"] = {
-            "model": "rlplat.envs.kinematics.route_path (velocity lag, setpoint gain, acceptance), "
-            "from the defender's position, velocity, maximum speed and route ahead; the meeting "
-            "point is its earliest point the attacker reaches at full speed per axis after "
-            "start_lag s, within horizon s from now (rlplat.envs.kinematics.route_intercept)",
-            **path,
-            "horizon": env.meeting_horizon,  # the seconds searched (a null setting: the limit)
-        }
-    if getattr(env.obs_fn, "reads_conformity", False):  # features the caller computes, with state
-        interface["route_conformity"] = {
-            "model": "route_residual = a - (c - v) * (1 - exp(-dt / route_lag)) / dt per axis, "
-            "a the defender's mean acceleration over the last control period dt, v its velocity "
-            "and c its setpoint follower's command (rlplat.envs.kinematics.follow_route) at the "
-            "period's start (0 from the step after its capture); route_deviation += "
-            "(|route_residual| - route_deviation) * (1 - exp(-dt / conformity_time)), 0 at the "
-            "episode's start",
-            "route_lag": list(env.obs_fn.route_lag),
-            "conformity_time": env.obs_fn.conformity_time,
-            "control_period": env.control_period,
-            "setpoint_gain": env.setpoint_gain,
-        }
+    interface.update(host_models(env))
     return interface
 
 
