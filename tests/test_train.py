@@ -454,35 +454,35 @@ def test_a_set_with_an_empty_split_is_refused_before_any_work(
 ):
     # A test-only set is a set (an evaluation flies it); training needs all three splits.
     held = write_small_set(tmp_path / "set", f"scenario.n_{empty}=0")
-    run = tmp_path / "run"
-    res = train_cli(*tiny, f"scenarios_dir={held.path}", f"hydra.run.dir={run}")
-    assert res.returncode == 2
-    assert res.stderr.strip().splitlines()[-1] == (
+    refusal = refused_before_any_work(train_cli, tmp_path / "run", *tiny,
+                                      f"scenarios_dir={held.path}")  # fmt: skip
+    assert refusal == (
         f"error: scenarios_dir: {held.path} has no {empty} scenarios; training needs the "
         "train/val/test splits"
     )
-    assert not run.exists()  # refused before Hydra made the run directory
+
+
+def refused_before_any_work(train_cli, run, *args: str) -> str:
+    """``train.py *args`` into ``run``: refused (exit code 2) before Hydra made ``run``; the
+    last line of its stderr."""
+    res = train_cli(*args, f"hydra.run.dir={run}")
+    assert res.returncode == 2, res.stderr[-2000:]
+    assert not run.exists()
+    return res.stderr.strip().splitlines()[-1]
 
 
 def test_a_scenarios_dir_the_run_cannot_fly_is_one_line_before_any_work(
     tmp_path, scenarios, tiny, train_cli
 ):
     run = tmp_path / "run"
-    res = train_cli(*tiny, f"scenarios_dir={tmp_path / 'nowhere'}", f"hydra.run.dir={run}")
-    assert res.returncode == 2
-    assert res.stderr.strip().splitlines()[-1] == (
-        f"error: scenarios_dir: {tmp_path / 'nowhere' / 'manifest.json'}: missing file of the "
-        "scenario set"
+    nowhere = tmp_path / "nowhere"
+    assert refused_before_any_work(train_cli, run, *tiny, f"scenarios_dir={nowhere}") == (
+        f"error: scenarios_dir: {nowhere / 'manifest.json'}: missing file of the scenario set"
     )
-    assert not run.exists()
     # a set of one attacker, asked to fly two
-    res = train_cli(*tiny, f"scenarios_dir={scenarios.path}", "env.attackers=2",
-                    f"hydra.run.dir={run}")  # fmt: skip
-    assert res.returncode == 2
-    assert res.stderr.strip().splitlines()[-1] == (
-        "error: env.attackers: 2, the scenarios have 1 (at most)"
-    )
-    assert not run.exists()
+    two = (*tiny, f"scenarios_dir={scenarios.path}", "env.attackers=2")
+    refusal = refused_before_any_work(train_cli, run, *two)
+    assert refusal == "error: env.attackers: 2, the scenarios have 1 (at most)"
 
 
 def test_a_run_on_a_scenarios_dir_flies_and_records_the_sets_scenario(

@@ -852,16 +852,18 @@ class PursuitEnv(EnvBase):
         return out
 
 
-def flown_attackers(attackers: int | None, scenarios: ScenarioSet) -> int:
-    """How many attackers an env flies: ``env.attackers`` (the first that many of each
-    scenario), or all of the scenarios' when None; a clear error for anything else."""
+def flown_attackers(
+    attackers: int | None, scenarios: ScenarioSet, field: str = "env.attackers"
+) -> int:
+    """How many attackers an env flies: ``attackers`` (the first that many of each scenario),
+    or all of the scenarios' when None; a clear error naming ``field`` for anything else."""
     if attackers is None:
         return scenarios.attackers
     if isinstance(attackers, bool) or not isinstance(attackers, int) or attackers < 1:
-        raise ConfigError(f"env.attackers: a positive integer or null, got {attackers!r}")
+        raise ConfigError(f"{field}: a positive integer or null, got {attackers!r}")
     if attackers > scenarios.attackers:
         raise ConfigError(
-            f"env.attackers: {attackers}, the scenarios have {scenarios.attackers} (at most)"
+            f"{field}: {attackers}, the scenarios have {scenarios.attackers} (at most)"
         )
     return attackers
 

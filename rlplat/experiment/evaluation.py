@@ -34,7 +34,7 @@ from rlplat.agents.native import OnnxPolicy, artifact_module, build_library, fin
 from rlplat.agents.policies import POLICIES, MeanAction, make_scripted_policy, policies_for
 from rlplat.envs.components import ACTIONS
 from rlplat.envs.dynamics import DYNAMICS
-from rlplat.envs.pursuit import ROLES, PursuitEnv
+from rlplat.envs.pursuit import ROLES, PursuitEnv, flown_attackers
 from rlplat.errors import ConfigError
 from rlplat.eval.ceiling import intercept_ceiling, route_flown
 from rlplat.eval.compare import compare, evaluations_dir
@@ -357,11 +357,7 @@ def evaluate_run(
     # A baseline flies its own velocity commands (eq. 2), not through a learner's action.
     env_cfg = cfg if learned else plain_action(cfg)
     policy_args = {} if learned else baseline_args(policy, cfg)
-    counted = isinstance(attackers, int) and not isinstance(attackers, bool)
-    if counted and attackers > scenarios.attackers:  # named as this command's setting
-        raise ConfigError(
-            f"attackers: {attackers}, the scenarios have {scenarios.attackers} (at most)"
-        )
+    flown_attackers(attackers, scenarios, "attackers")  # named as this command's setting
     overrides = {} if attackers is None else {"attackers": attackers}
     env = build_eval_env(
         env_cfg, scenarios=scenarios, split=split, num_envs=eval_num_envs(cfg, n),
