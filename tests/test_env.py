@@ -443,9 +443,9 @@ def test_nn_defender_without_network_is_refused(write_small_set, tmp_path):
 
 
 def test_bad_env_option_is_refused(scenarios):
-    with pytest.raises(ConfigError, match=r"env.scenario_order: unknown order 'backwards'"):
+    with pytest.raises(ConfigError, match=r"env.scenario_order: unknown 'backwards'; valid"):
         make_env("env.scenario_order=backwards", scenarios=scenarios)
-    with pytest.raises(ConfigError, match=r"dynamics.name: unknown dynamics 'rocket'; valid"):
+    with pytest.raises(ConfigError, match=r"dynamics.name: unknown 'rocket'; valid: velocity"):
         make_env("dynamics.name=rocket", scenarios=scenarios)
 
 
@@ -471,6 +471,72 @@ def test_a_reward_of_the_other_side_is_refused_by_training_and_warned_by_an_env(
     with caplog.at_level("WARNING", logger="rlplat.envs.pursuit"):
         make_env(*overrides, scenarios=scenarios)  # to fly policies: its reward is unused
     assert re.search(message[1:], caplog.text)
+
+
+def test_make_env_flies_the_sets_own_config_as_training_does(write_small_set, tmp_path):
+    # A set drawn in another vision ellipsoid flies in it, passed as an argument or through
+    # the scenarios_dir override, as train.py flies it; not in the composed one.
+    held = write_small_set(tmp_path / "set", "scenario.vision_semi_axes=[20.0,18.0,6.0]")
+    for env in (make_env(scenarios=held.path), make_env(f"scenarios_dir={held.path}")):
+        assert env.scenario_set.path == held.path
+        assert env.semi_axes.tolist() == [20.0, 18.0, 6.0]
+    with pytest.raises(ConfigError, match=r"^scenarios: given with scenarios_dir=.* too"):
+        make_env(f"scenarios_dir={held.path}", scenarios=held.path)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "kwargs", "message"),
+    [
+        (("env.capture_radius=-1",), {}, "env.capture_radius: must be a finite number > 0, got -1"),
+        (("env.terminate_out_of_view=no",), {}, "env.terminate_out_of_view: must be true or false"),
+        (("env.vision_semi_axes=[1,2]",), {}, "env.vision_semi_axes: must be 3 finite numbers"),
+        (("env.pursuit_gain=-5",), {}, "env.pursuit_gain: must be a finite number > 0, got -5"),
+        (("dynamics.physics_dt=-1",), {}, "dynamics.physics_dt: must be a finite number > 0"),
+        ((), {"num_envs": 2.5}, "num_envs: must be an integer >= 1, got 2.5"),
+        ((), {"num_envs": True}, "num_envs: must be an integer >= 1, got True"),
+        ((), {"split": "tst"}, "split: unknown 'tst'; valid: train, val, test"),
+        ((), {"scenarios": 42}, "scenarios: must be a ScenarioSet, a directory or None, got 42"),
+        ((), {"share": (2, 2)}, "share: must be (index, count) with 0 <= index < count"),
+    ],
+)  # fmt: skip
+def test_make_env_refuses_bad_input_in_one_line_naming_it(scenarios, overrides, kwargs, message):
+    kwargs.setdefault("scenarios", scenarios)
+    with pytest.raises(ConfigError) as refused:
+        make_env(*overrides, **kwargs)
+    assert str(refused.value).startswith(message) and "\n" not in str(refused.value)
+
+
+def test_workers_of_a_serial_env_share_one_walk_of_the_split(scenarios):
+    from torchrl.envs import SerialEnv
+
+    workers = SerialEnv(
+        2, [lambda i=i: make_env(scenarios=scenarios, share=(i, 2)) for i in range(2)]
+    )
+    batch = make_env(scenarios=scenarios, num_envs=2)
+    assert workers.reset()["scenario_index"].flatten().tolist() == [0, 1]
+    assert batch.reset()["scenario_index"].flatten().tolist() == [0, 1]
+    workers.close()
+
+
+def test_a_copy_of_a_compiled_env_steps_its_own_state(scenarios):
+    import copy
+    import pickle
+
+    env = make_env("env.compile_step=true", scenarios=scenarios, num_envs=2)
+    env.reset()
+    twin = copy.deepcopy(env)
+    twin.rollout(3, break_when_any_done=False)
+    assert env.step_count.tolist() == [0, 0] and twin.step_count.tolist() == [3, 3]
+    thawed = pickle.loads(pickle.dumps(env))
+    assert thawed.compile_step and thawed._advance is not env._advance
+
+
+def test_an_observation_must_name_every_feature():
+    class Unnamed(OBSERVATIONS["relative_state"]):
+        own_layout = ("v", "s")  # one more entry than relative_state names
+
+    with pytest.raises(TypeError, match=r"^Unnamed.own_names: 1 names for the 2 entries"):
+        Unnamed()
 
 
 def test_default_scenarios_are_generated_once_into_the_cache(small_sizes, tmp_path, monkeypatch):

@@ -36,6 +36,25 @@ def test_step_before_reset_is_refused_as_gymnasium_does(scenarios):
     env.close()
 
 
+def test_step_after_the_episode_ends_needs_a_reset(scenarios):
+    env = make_gym_env("env.time_limit=0.5", scenarios=scenarios.path)
+    env.reset(seed=0)
+    ended = [env.step(np.zeros(3, np.float32))[2:4] for _ in range(5)]
+    assert ended == [(False, False)] * 4 + [(False, True)]  # truncated at the time limit
+    with pytest.raises(gym.error.ResetNeeded, match="after an episode ends"):
+        env.step(np.zeros(3, np.float32))
+    env.reset()
+    env.step(np.zeros(3, np.float32))
+    env.close()
+
+
+def test_wraps_a_pursuit_env_not_a_transformed_one(scenarios):
+    from torchrl.envs import StepCounter, TransformedEnv
+
+    with pytest.raises(ConfigError, match=r"^gym adapter: wraps a PursuitEnv .* TransformedEnv"):
+        PursuitGymEnv(TransformedEnv(make_env(scenarios=scenarios), StepCounter()))
+
+
 def test_wraps_only_a_batch_of_one(scenarios):
     with pytest.raises(ConfigError, match="batch of one env, got num_envs=2"):
         PursuitGymEnv(make_env(scenarios=scenarios, num_envs=2))

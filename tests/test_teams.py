@@ -423,8 +423,8 @@ def test_env_attackers_flies_the_first_attackers_of_each_scenario(team_sets):
     assert torch.equal(first, both[:, [0, 2]])  # the first attacker, the same defender
     for bad, error in (
         ("3", "the scenarios have 2"),
-        ("0", "a positive integer or null"),
-        ("two", "a positive integer or null, got 'two'"),
+        ("0", "must be an integer >= 1 or null, got 0"),
+        ("two", "must be an integer >= 1 or null, got 'two'"),
     ):
         with pytest.raises(ConfigError, match=f"env.attackers: .*{error}"):
             make_env(f"env.attackers={bad}", scenarios=team_sets[2, 1])

@@ -495,7 +495,7 @@ def test_a_run_on_a_scenarios_dir_flies_and_records_the_sets_scenario(
     )
     with caplog.at_level("WARNING", logger="rlplat.experiment.factory"):
         tiny_run(held, tmp_path / "run", "scenario=pursuit_2v1")
-    assert "scenario: the set in scenarios_dir=" in caplog.text
+    assert f"scenario: the set in {held.path} was generated with another" in caplog.text
     assert "attackers, " in caplog.text and "vision_semi_axes" in caplog.text
     saved = OmegaConf.load(tmp_path / "run" / "config.yaml")
     assert saved.scenario.vision_semi_axes == [60.0, 50.0, 15.0]

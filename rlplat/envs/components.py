@@ -119,7 +119,7 @@ class _Observation:
     # "p"/"v"/"w"/"a" per 3-vector; "s" speed, "t" time, "e" accel, "d" distance (scalars)
     own_layout: tuple[str, ...] = ()
     other_layout: tuple[str, ...] = ()  # "p", "v" or "a" per 3-vector of each other drone's block
-    own_names: tuple[str, ...] = ()  # what each own 3-vector is (same order as own_layout)
+    own_names: tuple[str, ...] = ()  # what each own entry is (same order as own_layout)
     other_names: tuple[str, ...] = ()  # each other drone's, "{d}" standing for that drone
     route_ahead: bool = False  # reads the view's next_setpoint
     reads_intercept: bool = False  # reads the view's intercept and intercept_time
@@ -147,6 +147,13 @@ class _Observation:
             raise ConfigError(
                 f"observation: opponents must be >= 1 and mates >= 0, got {opponents}, {mates}"
             )
+        for names, layout in (("own_names", "own_layout"), ("other_names", "other_layout")):
+            if len(getattr(self, names)) != len(getattr(self, layout)):
+                raise TypeError(  # a class's definition, not a config value
+                    f"{type(self).__name__}.{names}: {len(getattr(self, names))} names for the "
+                    f"{len(getattr(self, layout))} entries of {layout}; name every one "
+                    "(export's feature table and a team seat's lone features read them)"
+                )
         self.opponents, self.mates, self.in_play = int(opponents), int(mates), bool(in_play)
         block = self.other_layout + (("f",) if self.in_play else ())
         layout = self.own_layout + block * (self.opponents + self.mates)

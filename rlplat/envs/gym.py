@@ -20,12 +20,18 @@ class PursuitGymEnv(gym.Env):
     Observation: ``Box(-inf, inf, (obs_dim,), float32)`` from the env's observation.
     Action: ``Box(-1, 1, (action_dim,), float32)``.
     ``info`` carries ``scenario_id``, ``distance``, ``visible`` and ``captured``.
-    ``step()`` before the first ``reset()`` raises Gymnasium's ``ResetNeeded``.
+    ``step()`` before the first ``reset()``, or after a step that ended the episode
+    (terminated or truncated), raises Gymnasium's ``ResetNeeded``.
     """
 
     metadata = {"render_modes": []}
 
     def __init__(self, env: PursuitEnv) -> None:
+        if not isinstance(env, PursuitEnv):
+            raise ConfigError(
+                f"gym adapter: wraps a PursuitEnv (rlplat.make_env(...)), got "
+                f"{type(env).__name__}; a transform's work goes in a gymnasium wrapper instead"
+            )
         if env.batch_size != torch.Size([1]):
             raise ConfigError(
                 f"gym adapter: flies a batch of one env, got num_envs={env.batch_size[0]}"
@@ -55,16 +61,14 @@ class PursuitGymEnv(gym.Env):
 
     def step(self, action):
         if self._needs_reset:
-            raise gym.error.ResetNeeded("Cannot call env.step() before calling env.reset()")
+            raise gym.error.ResetNeeded(
+                "Cannot call env.step() before calling env.reset() (nor after an episode ends)"
+            )
         action = torch.as_tensor(np.asarray(action, dtype=np.float32)).reshape(1, -1)
         td = self.env.step(TensorDict(action=action, batch_size=[1]))["next"]
-        return (
-            self._obs(td),
-            float(td["reward"]),
-            bool(td["terminated"]),
-            bool(td["truncated"]),
-            self._info(td),
-        )
+        terminated, truncated = bool(td["terminated"]), bool(td["truncated"])
+        self._needs_reset = terminated or truncated
+        return self._obs(td), float(td["reward"]), terminated, truncated, self._info(td)
 
     def close(self) -> None:
         self.env.close()

@@ -6,7 +6,7 @@ import logging
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import replace
-from typing import Literal, NamedTuple, Protocol
+from typing import Any, Literal, NamedTuple, Protocol
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -345,10 +345,8 @@ class PursuitEnv(EnvBase):
         self.sampler = ScenarioSampler(
             len(self.scenarios), scenario_order, self.device, scenario_share
         )
-        # One fused program per step instead of ~100 small kernels (static shapes: N is fixed).
-        self._advance = self._advance_eager
-        if compile_step:
-            self._advance = torch.compile(self._advance_eager, dynamic=False)
+        self.compile_step = compile_step
+        self._advance = self._stepper()
 
         # Per-env episode state.
         z = dict(device=self.device, dtype=torch.int64)
@@ -508,6 +506,24 @@ class PursuitEnv(EnvBase):
         if self.group is not None:
             td.get(self.group).batch_size = (*self.batch_size, self.team_size)
         return td
+
+    def _stepper(self) -> Callable[[Tensor], dict[str, Tensor | dict[str, Tensor]]]:
+        """The step's numerical work: :meth:`_advance_eager`, or with ``compile_step`` one
+        fused program per step instead of ~100 small kernels (static shapes: N is fixed)."""
+        if self.compile_step:
+            return torch.compile(self._advance_eager, dynamic=False)
+        return self._advance_eager
+
+    def __getstate__(self) -> dict[str, Any]:
+        # A compiled step is bound to the env it was made for: a copy (deepcopy, pickle,
+        # a worker process) makes its own, or it would step the original's state.
+        state = super().__getstate__()
+        state.pop("_advance", None)
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        super().__setstate__(state)
+        self._advance = self._stepper()
 
     def _advance_eager(self, action: Tensor) -> dict[str, Tensor | dict[str, Tensor]]:
         """One control period for every env: the step's whole numerical work on tensors.

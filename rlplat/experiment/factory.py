@@ -54,15 +54,20 @@ def build_component(registry: Mapping[str, Callable[..., Any]], group: str, node
     return cls(**checked_kwargs(cls, node, group, reserved=tuple(extra)), **extra)
 
 
-def resolve_scenarios(cfg: DictConfig, scenarios: ScenarioSet | str | os.PathLike | None):
-    """A loaded set, a directory to load, or (None) the configured set, generated and cached."""
+def resolve_scenarios(
+    cfg: DictConfig,
+    scenarios: ScenarioSet | str | os.PathLike | None,
+    field: str = "scenarios_dir",
+):
+    """A loaded set, a directory to load (an error names ``field``, what the user set), or
+    (None) the configured set, generated and cached."""
     if isinstance(scenarios, ScenarioSet):
         return scenarios
     if scenarios is not None:
         try:
             return ScenarioSet.load(scenarios)
         except ScenarioFileError as e:  # the field the user set, then what is wrong there
-            raise ScenarioFileError(f"scenarios_dir: {e}") from None
+            raise ScenarioFileError(f"{field}: {e}") from None
     spec = ScenarioSpec.from_dict(OmegaConf.to_container(cfg.scenario, resolve=True))
     key = hashlib.sha256(json.dumps(spec.to_dict(), sort_keys=True).encode()).hexdigest()[:16]
     path = CACHE_DIR / "scenarios" / key
@@ -82,10 +87,12 @@ def with_set_scenario(cfg: DictConfig, scenarios: ScenarioSet) -> DictConfig:
     flown = scenarios.spec.to_dict()
     composed = ScenarioSpec.from_dict(OmegaConf.to_container(cfg.scenario, resolve=True)).to_dict()
     differ = sorted(k for k in {*flown, *composed} if flown.get(k) != composed.get(k))
-    if differ:
-        log.warning(
-            "scenario: the set in scenarios_dir=%s was generated with another scenario config "
-            "(%s differ); the run flies the set and records its config, not the composed one",
+    if differ:  # a set's own seed and split sizes are what a set is drawn with, not a misfit
+        sized = set(differ) <= {"seed", "n_train", "n_val", "n_test"}
+        log.log(
+            logging.INFO if sized else logging.WARNING,
+            "scenario: the set in %s was generated with another scenario config (%s differ); "
+            "its config is flown and recorded, not the composed one",
             scenarios.path, ", ".join(differ),
         )  # fmt: skip
     cfg = cfg.copy()

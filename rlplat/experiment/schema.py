@@ -362,8 +362,9 @@ def _learning_drones(c: Mapping[str, Any]) -> int:
     return c["env"]["attackers"] or c["scenario"].get("attackers", 1)
 
 
-def _check_train_fields(c: Mapping[str, Any]) -> None:
-    algo, env, learner = c["algo"], c["env"], c["drone"]["learner"]
+def _check_training(c: Mapping[str, Any]) -> None:
+    """What a training run needs of its config besides its env's."""
+    algo, learner = c["algo"], c["drone"]["learner"]
     problem = reward_role_problem(c["reward"]["terms"], learner)
     if problem is not None:  # training on it would learn the other side's game
         raise ConfigError(problem)
@@ -420,6 +421,12 @@ def _check_train_fields(c: Mapping[str, Any]) -> None:
             f"{first_update} the first update waits for (algo.batch_size, "
             "algo.init_random_frames x learning drones)"
         )
+
+
+def _check_env_fields(c: Mapping[str, Any], env_batch: int | None = None) -> None:
+    """What the env needs of its config: a training run's (``algo.num_envs`` envs) or an env
+    of ``env_batch`` envs (``make_env``'s ``num_envs``)."""
+    env = c["env"]
     if env["time_limit"] < env["control_period"]:
         raise ConfigError(
             f"env.time_limit: {env['time_limit']} s is shorter than one control period "
@@ -430,7 +437,10 @@ def _check_train_fields(c: Mapping[str, Any]) -> None:
         raise ConfigError(f"env.attackers: {k}, the scenarios have {scenario_k} (at most)")
     dynamics = _component(c, "dynamics")
     if c["dynamics"]["name"] == "airsim":
-        _check_airsim(dynamics, env, algo["num_envs"], "algo.num_envs")
+        if env_batch is None:
+            _check_airsim(dynamics, env, c["algo"]["num_envs"], "algo.num_envs")
+        else:
+            _check_airsim(dynamics, env, env_batch, "num_envs")
     elif dynamics["physics_dt"] > env["control_period"]:
         raise ConfigError(
             f"dynamics.physics_dt: {dynamics['physics_dt']} s is longer than one control "
@@ -494,8 +504,13 @@ def _check_export_fields(c: Mapping[str, Any]) -> None:
 # Checking ---------------------------------------------------------------------------------
 
 
-def validate_train_config(cfg: DictConfig) -> None:
+def validate_train_config(cfg: DictConfig, env_batch: int | None = None) -> None:
     """Check a composed ``conf/train.yaml`` before any work starts.
+
+    ``env_batch``: the config of an env of that many envs, built to fly policies
+    (:func:`rlplat.make_env`), not of a training run: its values and the env's rules are
+    checked, not the training loop's (``algo``'s batches, its scripted start), and a reward of
+    the other side's game, which training refuses, is left to the env's warning.
 
     Raises:
         ConfigError: one line naming the first offending field and its value.
@@ -505,7 +520,9 @@ def validate_train_config(cfg: DictConfig) -> None:
     logger = LOGGER_RULES.get(backend, {}) if isinstance(backend, str) else {}
     rules = {**TRAIN_RULES, **_component_rules(c), **logger}
     check_table(c, rules)
-    _check_train_fields(c)
+    if env_batch is None:
+        _check_training(c)
+    _check_env_fields(c, env_batch)
 
 
 def validate_evaluate_config(cfg: DictConfig) -> None:
