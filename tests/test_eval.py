@@ -324,6 +324,12 @@ def test_last_checkpoint_and_a_path(trained_run):
     again = evaluate_run(trained_run, ckpt=str(path), split="val", out_dir=other, plots=False)
     assert again.summary["name"] == "last" and again.summary["checkpoint"] == str(path)
     assert torch.equal(last.results.returns, again.results.returns)  # deterministic replay
+    # Another run's best.pt is named after that run: it does not replace this run's val-best.
+    foreign = trained_run.parent / "other-run" / "checkpoints" / "best.pt"
+    foreign.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copy(path, foreign)
+    flown = evaluate_run(trained_run, ckpt=str(foreign), split="val", plots=False, trajectories=0)
+    assert flown.out_dir == trained_run / "eval" / "val-other-run-best"
 
 
 def test_an_ensemble_flies_the_mean_action_of_its_members(trained_run, tmp_path):

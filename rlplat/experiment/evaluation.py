@@ -97,9 +97,22 @@ def checkpoint_path(run_dir: Path, ckpt: str) -> Path:
     return path
 
 
+def checkpoint_label(run_dir: Path, ckpt: str, path: Path) -> str:
+    """What the evaluations and exports of checkpoint ``ckpt`` (at ``path``) are named after:
+    ``best``, ``last``, a file of the run's own ``checkpoints/`` by its name
+    (``val-0204800``), another's by its run and name (``sel-s1-best``), so that another run's
+    ``best.pt`` does not take the place of this run's own."""
+    if ckpt in CHECKPOINT_NAMES:
+        return ckpt
+    if path.resolve().parent == (run_dir / "checkpoints").resolve():
+        return path.stem
+    owner = path.parent.parent if path.parent.name == "checkpoints" else path.parent
+    return f"{owner.resolve().name}-{path.stem}"
+
+
 def default_export_dir(run_dir: Path, ckpt: str, path: Path) -> Path:
     """Where ``export.py`` writes the artifacts of checkpoint ``ckpt`` (at ``path``)."""
-    return run_dir / "export" / (ckpt if ckpt in CHECKPOINT_NAMES else path.stem)
+    return run_dir / "export" / checkpoint_label(run_dir, ckpt, path)
 
 
 def artifact_files(
@@ -320,7 +333,7 @@ def evaluate_run(
         raise ConfigError(f"speed_ratio_bins: must be increasing and > 0, got {edges}")
     learned = policy == "checkpoint" or policy in ARTIFACTS
     path = checkpoint_path(run_dir, ckpt) if learned else None
-    name = (ckpt if ckpt in CHECKPOINT_NAMES else path.stem) if path else policy
+    name = checkpoint_label(run_dir, ckpt, path) if path else policy
     if export_dir is not None and policy not in ARTIFACTS:
         raise ConfigError(f"export_dir: is for policy=onnx or c, got policy={policy}")
     files = where = None

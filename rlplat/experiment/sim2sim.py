@@ -36,8 +36,8 @@ from rlplat.errors import ConfigError
 from rlplat.eval.episodes import EpisodeResults, evaluate
 from rlplat.eval.tables import differing_outcomes, episode_rows, write_csv
 from rlplat.experiment.evaluation import (
-    CHECKPOINT_NAMES,
     check_policy_fits,
+    checkpoint_label,
     checkpoint_path,
     load_run_config,
 )
@@ -209,7 +209,7 @@ def sim2sim(
     if split not in SPLITS:
         raise ConfigError(f"split: unknown '{split}'; valid: {', '.join(SPLITS)}")
     path = checkpoint_path(run_dir, ckpt)
-    name = ckpt if ckpt in CHECKPOINT_NAMES else path.stem
+    name = checkpoint_label(run_dir, ckpt, path)
     out_dir = Path(out_dir) if out_dir else run_dir / "eval" / f"sim2sim-{split}-{name}"
     state = load_checkpoint(path)
     scenarios = resolve_scenarios(cfg, scenarios_dir or cfg.get("scenarios_dir"))
