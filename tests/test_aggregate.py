@@ -58,3 +58,16 @@ def test_aggregate_of_nothing_is_a_clear_error(tmp_path):
 
     with pytest.raises(ConfigError, match=r"sweep_dir: no finished training run under"):
         aggregate(tmp_path)
+
+
+def test_a_job_that_did_not_finish_is_named_not_dropped_silently(tmp_path, caplog):
+    from rlplat.eval.aggregate import collect
+
+    fake_sweep(tmp_path, {"default": [(0, 0.2, -50.0), (1, 0.4, -40.0)]})
+    (tmp_path / "1" / "summary.json").unlink()  # job 1 stopped before its test
+    with caplog.at_level("WARNING", logger="rlplat.eval.aggregate"):
+        groups, _ = collect(tmp_path)
+    assert [r["seed"] for r in groups["default"]] == [0]
+    assert f"1 job(s) of {tmp_path} did not finish (no summary.json) and are left out: 1" in (
+        caplog.text
+    )

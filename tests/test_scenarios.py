@@ -58,6 +58,15 @@ def test_same_seed_gives_byte_identical_files(make_spec, tmp_path):
     assert all(a[f] != c[f] for f in a)
 
 
+def test_writing_another_set_over_one_says_so(make_spec, tmp_path, caplog):
+    with caplog.at_level("WARNING", logger="rlplat.scenarios.store"):
+        write_scenario_set(make_spec(*SMALL), tmp_path)
+        write_scenario_set(make_spec(*SMALL), tmp_path)  # the same set again: nothing to say
+        assert not caplog.text
+        write_scenario_set(make_spec(*SMALL, "scenario.seed=1"), tmp_path)
+    assert f"replacing the scenario set in {tmp_path} (manifest sha256 " in caplog.text
+
+
 def test_no_duplicates_and_split_counts(make_spec):
     spec = make_spec("scenario.n_train=20000", "scenario.n_val=3000", "scenario.n_test=5000")
     splits = generate(spec)

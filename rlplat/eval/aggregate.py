@@ -61,6 +61,16 @@ def collect(sweep_dir: str | Path) -> tuple[dict[str, list[dict[str, Any]]], lis
             f"sweep_dir: no finished training run under {sweep_dir} "
             "(a summary.json beside a config.yaml)"
         )
+    unfinished = sorted(
+        str(p.parent.parent.relative_to(sweep_dir))
+        for p in sweep_dir.rglob(".hydra/overrides.yaml")
+        if not (p.parent.parent / "summary.json").is_file()
+    )
+    if unfinished:
+        log.warning(
+            "aggregate: %d job(s) of %s did not finish (no summary.json) and are left out: %s",
+            len(unfinished), sweep_dir, ", ".join(unfinished),
+        )  # fmt: skip
     found = {run: overrides(run) for run in runs}
     common = [o for o in found[runs[0]] if all(o in v for v in found.values())]
     groups: dict[str, list[dict[str, Any]]] = defaultdict(list)

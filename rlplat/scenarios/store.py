@@ -281,6 +281,9 @@ class ScenarioSet:
                 differs from the manifest (truncated or edited).
         """
         path = Path(path)
+        if path.exists() and not path.is_dir():
+            raise ScenarioFileError(f"{path}: not a directory (a scenario set is the directory "
+                                    f"that holds {MANIFEST})")  # fmt: skip
         try:
             manifest = json.loads(_read(path / MANIFEST))
         except ValueError as e:
@@ -323,6 +326,8 @@ def _read(path: Path) -> bytes:
         return path.read_bytes()
     except FileNotFoundError:
         raise ScenarioFileError(f"{path}: missing file of the scenario set") from None
+    except OSError as e:  # a directory in its place, no permission, ...
+        raise ScenarioFileError(f"{path}: cannot be read ({e.strerror})") from None
 
 
 def write_scenario_set(spec: ScenarioSpec, out_dir: str | os.PathLike) -> dict[str, Any]:
@@ -361,10 +366,15 @@ def write_scenario_set(spec: ScenarioSpec, out_dir: str | os.PathLike) -> dict[s
         },
         "quality": quality_report(spec, splits),
     }
+    text = json.dumps(manifest, indent=2) + "\n"
+    before = out / MANIFEST
+    if before.is_file() and before.read_text() != text:  # runs may cite the one it replaces
+        log.warning("replacing the scenario set in %s (manifest sha256 %s) by another",
+                    out, sha256_bytes(before.read_bytes())[:16])  # fmt: skip
     try:
         for split, data in files.items():
             atomic_write_bytes(out / f"{split}.jsonl", data)
-        atomic_write_text(out / MANIFEST, json.dumps(manifest, indent=2) + "\n")
+        atomic_write_text(out / MANIFEST, text)
     except OSError as e:
         raise ConfigError(
             f"out_dir: cannot write the scenario set to {out}: {e.strerror}"
