@@ -3,21 +3,20 @@
 Every config group can be swapped from the command line (see conf/train.yaml); ``-m`` sweeps.
 """
 
+from pathlib import Path
+
 from omegaconf import DictConfig
 
 from rlplat.experiment.command_line import hydra_main
 
 
-def check(cfg: DictConfig) -> None:
-    from rlplat.experiment.factory import check_scenarios_dir
-    from rlplat.experiment.schema import validate_train_config
-    from rlplat.scenarios import SPLITS
+def check(cfg: DictConfig, run_dir: Path | None, field: str) -> None:
+    from rlplat.experiment.training import preflight
 
-    validate_train_config(cfg)
-    check_scenarios_dir(cfg, SPLITS, "training")  # before Hydra makes the run directory
+    preflight(cfg, run_dir, field)  # before Hydra makes the run directory
 
 
-@hydra_main("train", check)
+@hydra_main("train", validate_job=check)
 def main(cfg: DictConfig) -> None:
     from rlplat.experiment import train
 

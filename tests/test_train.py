@@ -1,6 +1,7 @@
 import csv
 import json
 import logging
+import shutil
 import time
 
 import pytest
@@ -140,7 +141,7 @@ def test_resume_continues_counters_and_refuses_another_interface(scenarios, tmp_
     ):
         tiny_run(scenarios, tmp_path, v4, "resume=true", "env.capture_radius=2.0",
                  "reward.terms.capture=5.0")  # fmt: skip
-    with pytest.raises(ConfigError, match=r"checkpoint: no file at .*last.pt"):
+    with pytest.raises(ConfigError, match=r"resume: true, and .*elsewhere holds no run to "):
         tiny_run(scenarios, tmp_path / "elsewhere", v4, "resume=true")
 
 
@@ -485,6 +486,91 @@ def test_a_scenarios_dir_the_run_cannot_fly_is_one_line_before_any_work(
     assert refusal == "error: env.attackers: 2, the scenarios have 1 (at most)"
 
 
+def test_what_train_would_refuse_later_is_refused_before_any_work(
+    tmp_path, scenarios, tiny, train_cli
+):
+    # Each used to pass the command line's check and fail once Hydra had made the run
+    # directory (or, for a path that is not what it should be, with a traceback).
+    run, tiny = tmp_path / "run", (*tiny, f"scenarios_dir={scenarios.path}")
+    a_file = scenarios.path / "manifest.json"
+    for args, refusal in (
+        (["init_from=/nonexistent"], "init_from: no checkpoint at /nonexistent"),
+        ([f"init_from={a_file}"], f"init_from: checkpoint: {a_file} is not an rlplat checkpoint"),
+        (["env.defender_network=/nonexistent.pt"], "env.defender_network: checkpoint: no file"),
+        (["algo.demonstrations=[/nonexistent.json]"], "algo.demonstrations: no plays file"),
+        (["observation=relative_state"], "action.gate_high: the gate reads the route deviation"),
+        ([f"scenarios_dir={a_file}"], f"scenarios_dir: {a_file}: not a directory"),
+        (["train.device=meta"], "train.device: must be a torch device (cpu, cuda, cuda:1, mps)"),
+    ):  # fmt: skip
+        assert refused_before_any_work(train_cli, run, *tiny, *args).startswith(
+            f"error: {refusal}"
+        ), args
+
+
+def test_a_run_directory_holds_one_run(tmp_path, scenarios, tiny, tiny_run, train_cli):
+    run = tmp_path / "run"
+    tiny_run(scenarios, run)
+    metrics = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    tiny = (*tiny, f"scenarios_dir={scenarios.path}", f"hydra.run.dir={run}")
+    res = train_cli(*tiny, "seed=5")  # another run into it would mix their files
+    assert res.returncode == 2
+    assert res.stderr == (
+        f"error: hydra.run.dir: {run} holds a run already; resume=true continues it, another "
+        "directory starts a new one\n"
+    )
+    res = train_cli(*tiny, "resume=true", "reward=sparse")  # a resume of another config
+    assert res.returncode == 2 and res.stderr.startswith("error: resume: the config differs")
+    assert {p: p.read_bytes() for p in run.rglob("*") if p.is_file()} == metrics  # untouched
+    assert refused_before_any_work(train_cli, tmp_path / "new", *tiny[:-1], "resume=true") == (
+        f"error: resume: true, and {tmp_path / 'new'} holds no run to continue (no last.pt)"
+    )
+    # A sweep into a directory whose job 1 holds a run starts no job.
+    sweep = tmp_path / "sweep"
+    tiny_run(scenarios, sweep / "1")
+    res = train_cli("-m", *tiny[:-1], "seed=0,1", f"hydra.sweep.dir={sweep}")
+    assert res.returncode == 2 and not (sweep / "0").exists()
+    assert res.stderr.startswith(f"error: hydra.sweep.dir: {sweep / '1'} holds a run already")
+
+
+def test_a_resumed_runs_learning_curve_is_the_whole_run(tmp_path):
+    from rlplat.experiment.logger import Metrics
+
+    first = Metrics(tmp_path)
+    for frames, rate in ((512, 0.2), (1024, 0.3), (1536, 0.4)):
+        first.log({"eval/capture_rate": rate}, step=frames)
+    first.close()
+    # Resumed from the checkpoint at 1,024 frames: 1,536 is flown, and logged, again.
+    resumed = Metrics(tmp_path)
+    assert resumed.history["eval/capture_rate"] == [(512, 0.2), (1024, 0.3), (1536, 0.4)]
+    resumed.log({"eval/capture_rate": 0.5}, step=1536)
+    resumed.log({"eval/capture_rate": 0.6}, step=2048)
+    assert resumed.history["eval/capture_rate"] == [(512, 0.2), (1024, 0.3), (1536, 0.5),
+                                                   (2048, 0.6)]  # fmt: skip
+
+
+def test_a_resume_keeps_the_record_of_how_the_run_was_launched(
+    tmp_path, scenarios, tiny, train_cli
+):
+    run = tmp_path / "run"
+    args = (*tiny, f"scenarios_dir={scenarios.path}", f"hydra.run.dir={run}", "seed=3")
+    assert train_cli(*args).returncode == 0
+    launched = (run / ".hydra" / "overrides.yaml").read_text()
+    res = train_cli(*args, "resume=true", "train.total_frames=512")
+    assert res.returncode == 0, res.stderr[-2000:]
+    # aggregate names a run's variant by the overrides it was launched with
+    assert (run / ".hydra" / "overrides.yaml").read_text() == launched
+    resumed = OmegaConf.load(run / ".hydra" / "resume" / "overrides.yaml")
+    assert "resume=true" in resumed and "train.total_frames=512" in resumed
+    assert json.loads((run / "summary.json").read_text())["frames"] >= 512
+
+
+@pytest.mark.skipif(shutil.which("sbatch") is not None, reason="this machine has SLURM")
+def test_the_cluster_launcher_without_slurm_is_refused_before_any_work(tmp_path, train_cli):
+    res = train_cli("-m", "hydra/launcher=cluster", "seed=0,1", f"hydra.sweep.dir={tmp_path}/s")
+    assert res.returncode == 2 and not (tmp_path / "s").exists()
+    assert res.stderr.startswith("error: hydra/launcher=cluster: submits the jobs to SLURM")
+
+
 def test_a_run_on_a_scenarios_dir_flies_and_records_the_sets_scenario(
     tmp_path, write_small_set, tiny_run, caplog
 ):
@@ -518,7 +604,9 @@ def test_a_sweep_with_one_bad_job_starts_none(tmp_path, train_cli):
     sweep = tmp_path / "sweep"
     res = train_cli("-m", "seed=0,-1", f"hydra.sweep.dir={sweep}")
     assert res.returncode == 2
-    assert res.stderr == "error: seed: must be an integer in [0, 4294967295], got -1\n"
+    assert res.stderr == (
+        "error: seed: must be an integer in [0, 4294967295], got -1 (in the sweep's job seed=-1)\n"
+    )
     assert not sweep.exists()
 
 

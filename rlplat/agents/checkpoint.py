@@ -49,7 +49,12 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"checkpoint: no file at {path}")
-    state = torch.load(path, map_location="cpu", weights_only=False)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:  # noqa: BLE001 - whatever the file is, it is not a checkpoint
+        raise ConfigError(
+            f"checkpoint: {path} is not an rlplat checkpoint ({type(e).__name__})"
+        ) from None
     if not isinstance(state, dict) or state.get("format_version") != FORMAT_VERSION:
         raise ConfigError(f"checkpoint: {path} is not an rlplat checkpoint (format 1)")
     return state

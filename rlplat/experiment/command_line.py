@@ -9,9 +9,13 @@ import itertools
 import math
 import os
 import re
+import shutil
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any, TypeVar
+
+from omegaconf import open_dict
 
 from rlplat.cli import exit_on_error
 from rlplat.errors import ConfigError, RlplatError
@@ -21,7 +25,9 @@ T = TypeVar("T")
 
 
 def hydra_main(
-    config_name: str, validate: Callable[[Any], None] | None = None
+    config_name: str,
+    validate: Callable[[Any], None] | None = None,
+    validate_job: Callable[[Any, Path | None, str], None] | None = None,
 ) -> Callable[[Callable[[Any], T]], Callable[..., T | None]]:
     """``@hydra.main`` on ``conf/<config_name>.yaml``, whose bad command lines are one line.
 
@@ -30,7 +36,11 @@ def hydra_main(
     option a group does not have, an override Hydra cannot parse or a value ``validate``
     refuses ends the program with one line on stderr and exit code 2, before Hydra makes a
     run directory or starts the first job. The function's own :class:`RlplatError` is one
-    line too (:func:`exit_on_error`). ``HYDRA_FULL_ERROR=1`` shows Hydra's own report."""
+    line too (:func:`exit_on_error`). ``HYDRA_FULL_ERROR=1`` shows Hydra's own report.
+
+    ``validate_job(cfg, job_dir, field)`` checks a job against the directory Hydra will make
+    for it (``hydra.run.dir``, or a sweep's ``hydra.sweep.dir``/``subdir``, named by
+    ``field``; None where its name is not known before Hydra starts, e.g. ``${now:...}``)."""
 
     def decorate(fn: Callable[[Any], T]) -> Callable[..., T | None]:
         import hydra
@@ -45,12 +55,16 @@ def hydra_main(
                 return run(cfg_passthrough)
             if os.environ.get("HYDRA_FULL_ERROR") != "1":  # as Hydra reads it
                 try:
-                    check_command_line(config_name, sys.argv[1:], validate)
+                    check_command_line(config_name, sys.argv[1:], validate, validate_job)
                 except RlplatError as e:
                     print(f"error: {e}", file=sys.stderr)
                     sys.exit(2)
                 except Exception:  # noqa: BLE001 - not ours to word: Hydra reports it, as before
                     pass
+            if config_name == "train" and _resumes(sys.argv[1:]):
+                # The run's .hydra/ stays as it was launched (what aggregate names a variant
+                # by); the resume's own goes beside it.
+                sys.argv.append(f"hydra.output_subdir={RESUME_SUBDIR}")
             return run()
 
         return entry
@@ -58,12 +72,25 @@ def hydra_main(
     return decorate
 
 
+#: Where ``train.py resume=true`` writes Hydra's record of the resume, in the run directory.
+RESUME_SUBDIR = ".hydra/resume"
+
+
+def _resumes(argv: Sequence[str]) -> bool:
+    """Whether a command line resumes a run (and sets no ``hydra.output_subdir`` itself)."""
+    keys = {a.split("=", 1)[0].lstrip("+") for a in argv}
+    return "resume=true" in {a.lower() for a in argv} and "hydra.output_subdir" not in keys
+
+
 #: Sweeps of more jobs than this are checked one swept value at a time (the others at their first).
 MAX_CHECKED_JOBS = 64
 
 
 def check_command_line(
-    config_name: str, argv: Sequence[str], validate: Callable[[Any], None] | None = None
+    config_name: str,
+    argv: Sequence[str],
+    validate: Callable[[Any], None] | None = None,
+    validate_job: Callable[[Any, Path | None, str], None] | None = None,
 ) -> None:
     """Compose ``conf/<config_name>.yaml`` with the overrides of a command line (each job of
     a ``-m`` sweep, or of ``hydra.mode=MULTIRUN``) and check each config with ``validate``
@@ -98,7 +125,16 @@ def check_command_line(
     except OverrideParseException as e:
         raise ConfigError(f"{e.override}: {_one_line(e.message)}") from None
     if args.cfg:
-        validate = None  # show the config, however incomplete; keys and options still count
+        validate = validate_job = None  # show the config, however incomplete; keys still count
+    cluster = any(  # conf/hydra/launcher/cluster.yaml submits with SLURM's sbatch
+        o.key_or_group == "hydra/launcher" and o.get_value_element_as_str() == "cluster"
+        for o in parsed
+    )
+    if cluster and not args.cfg and shutil.which("sbatch") is None:
+        raise ConfigError(
+            "hydra/launcher=cluster: submits the jobs to SLURM, and this machine has no "
+            "sbatch (hydra/launcher=basic or joblib run them here)"
+        )
     multirun = args.multirun or any(
         o.key_or_group == "hydra.mode" and o.get_value_element_as_str() == "MULTIRUN"
         for o in parsed
@@ -111,10 +147,42 @@ def check_command_line(
         return  # a glob or an interval: the sweeper expands it (or refuses it) itself
     else:
         jobs = _sweep_jobs(parsed)
-    for overrides in jobs:
+    exact = not multirun or math.prod(
+        len(list(o.sweep_string_iterator())) if o.is_sweep_override() else 1 for o in parsed
+    ) == len(jobs)  # fmt: skip
+    swept = {o.get_key_element() for o in parsed if o.is_sweep_override()}
+    for num, overrides in enumerate(jobs):
         cfg = _compose(config_name, overrides)
-        if validate is not None:
-            validate(cfg)
+        job_dir = _job_dir(cfg, multirun, num if exact else None)
+        with open_dict(cfg):
+            del cfg["hydra"]
+        try:
+            if validate is not None:
+                validate(cfg)
+            if validate_job is not None:
+                validate_job(cfg, job_dir, "hydra.sweep.dir" if multirun else "hydra.run.dir")
+        except RlplatError as e:
+            if not swept:
+                raise
+            job = " ".join(o for o in overrides if o.split("=", 1)[0] in swept)
+            raise type(e)(f"{e} (in the sweep's job {job})") from None
+
+
+def _job_dir(cfg: Any, multirun: bool, num: int | None) -> Path | None:
+    """The directory Hydra makes for a job (``num``: its number in a sweep, None: unknown),
+    or None where it cannot be named before Hydra starts."""
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        if not multirun:
+            return Path(str(cfg.hydra.run.dir))
+        if num is None:
+            return None
+        with open_dict(cfg):
+            cfg.hydra.job.num = num
+        return Path(str(cfg.hydra.sweep.dir)) / str(cfg.hydra.sweep.subdir)
+    except OmegaConfBaseException:
+        return None
 
 
 def _sweep_jobs(parsed: Sequence[Any]) -> list[list[str]]:
@@ -136,9 +204,8 @@ def _sweep_jobs(parsed: Sequence[Any]) -> list[list[str]]:
 
 
 def _compose(config_name: str, overrides: list[str]) -> Any:
-    """The job's config without its ``hydra`` node; Hydra's composition errors as one line."""
+    """The job's config, its ``hydra`` node included; Hydra's composition errors as one line."""
     from hydra.errors import HydraException, MissingConfigException
-    from omegaconf import open_dict
     from omegaconf.errors import OmegaConfBaseException
 
     try:
@@ -154,8 +221,6 @@ def _compose(config_name: str, overrides: list[str]) -> Any:
         if isinstance(cause, OmegaConfBaseException) and "not in struct" in str(cause):
             raise ConfigError(_unknown_key(cause)) from None
         raise ConfigError(_one_line(str(e))) from None
-    with open_dict(cfg):
-        del cfg["hydra"]
     return cfg
 
 

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from rlplat.agents.checkpoint import load_checkpoint, save_checkpoint
 from rlplat.agents.policies import policies_for
+from rlplat.cli import exit_on_error
 from rlplat.experiment.evaluation import evaluate_run, load_run_config
 from rlplat.io import atomic_write_text
 
@@ -89,8 +90,9 @@ def write_card(run_dir: str | Path, out: str | Path, ckpt: str = "best", split: 
     return card
 
 
+@exit_on_error
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument("run_dir", help="a training run directory")
     parser.add_argument("out", help="the controller file to write (.pt)")
     parser.add_argument("--ckpt", default="best", choices=("best", "last"))

@@ -112,18 +112,6 @@ def require_scenarios(scenarios: ScenarioSet, splits: Sequence[str], needed_by: 
             )
 
 
-def check_scenarios_dir(cfg: DictConfig, splits: Sequence[str], needed_by: str) -> None:
-    """Refuse, in one line naming ``scenarios_dir``, a set there that does not load or has no
-    scenario in one of ``splits`` (and ``env.attackers`` beyond its attackers): a command
-    line's check, before any work starts."""
-    if cfg.get("scenarios_dir") is None:
-        return
-    scenarios = resolve_scenarios(cfg, cfg.scenarios_dir)
-    require_scenarios(scenarios, splits, needed_by)
-    if "env" in cfg:
-        flown_attackers(cfg.env.get("attackers"), scenarios)
-
-
 def build_env(
     cfg: DictConfig,
     *,

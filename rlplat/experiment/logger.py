@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import logging
 import os
 from collections import defaultdict
@@ -49,14 +50,33 @@ class Metrics:
     """
 
     def __init__(self, run_dir: Path, extra: Logger | None = None) -> None:
+        self.history: dict[str, list[tuple[int, float]]] = defaultdict(list)
+        self._earlier = set(self._read_history(Path(run_dir) / "metrics" / "scalars"))
         self.loggers: list[Logger] = [CSVLogger(exp_name="metrics", log_dir=str(run_dir))]
         if extra is not None:
             self.loggers.append(extra)
-        self.history: dict[str, list[tuple[int, float]]] = defaultdict(list)
+
+    def _read_history(self, scalars: Path) -> list[str]:
+        """A resumed run's history so far, from its CSV files (the learning curve is the whole
+        run's); the names read."""
+        names = []
+        for path in sorted(scalars.rglob("*.csv")) if scalars.is_dir() else []:
+            name = path.relative_to(scalars).with_suffix("").as_posix()
+            with open(path, newline="") as f:
+                rows = [r for r in csv.reader(f) if len(r) == 2]
+            try:
+                self.history[name] = [(int(float(s)), float(v)) for s, v in rows]
+            except ValueError:  # not a file of ours: left out of the curve
+                continue
+            names.append(name)
+        return names
 
     def log(self, values: Mapping[str, float], step: int) -> None:
         for name, value in values.items():
             value = float(value)
+            if name in self._earlier:  # a resume logs again from its checkpoint's frames on
+                self._earlier.discard(name)
+                self.history[name] = [(s, v) for s, v in self.history[name] if s < step]
             self.history[name].append((step, value))
             for logger in self.loggers:
                 logger.log_scalar(name, value, step=step)

@@ -149,8 +149,8 @@ def device(value: Any) -> str | None:
         dev = torch.device(value) if isinstance(value, str) else None
     except RuntimeError:
         dev = None
-    if dev is None:
-        return f"must be a torch device (cpu, cuda, cuda:1, mps, ...), got {show(value)}"
+    if dev is None or dev.type not in ("cpu", "cuda", "mps"):
+        return f"must be a torch device (cpu, cuda, cuda:1, mps), got {show(value)}"
     if dev.type == "cuda":
         count = torch.cuda.device_count() if torch.cuda.is_available() else 0
         if not count:

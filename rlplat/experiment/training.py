@@ -126,13 +126,10 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     ``metrics/`` (CSV), ``learning_curve.png`` and ``summary.json``.
     """
     # Check everything before any work starts.
-    validate_train_config(cfg)
-    scenarios = resolve_scenarios(cfg, cfg.scenarios_dir)
-    require_scenarios(scenarios, SPLITS, "training")  # it validates, and tests at its end
-    if cfg.scenarios_dir is not None:
-        cfg = with_set_scenario(cfg, scenarios)  # the set's config: what it flies, recorded
+    cfg, scenarios = checked_config(cfg)
     run_dir, algo = make_run_dir(run_dir), cfg.algo
     config = OmegaConf.to_container(cfg, resolve=True)
+    check_run_dir(run_dir, cfg.resume)
     resume_state = load_resume_state(run_dir, config) if cfg.resume else None
     init = warm_start_state(cfg)
     if cfg.train.threads is not None:
@@ -298,6 +295,60 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
 # Set-up ----------------------------------------------------------------------------------
 
 
+def checked_config(cfg: DictConfig) -> tuple[DictConfig, ScenarioSet]:
+    """The config a run flies, checked, and its scenario set: with ``scenarios_dir``, the
+    set's own scenario config replaces the composed one (what it flies, recorded)."""
+    validate_train_config(cfg)
+    scenarios = resolve_scenarios(cfg, cfg.scenarios_dir)
+    require_scenarios(scenarios, SPLITS, "training")  # it validates, and tests at its end
+    flown_attackers(cfg.env.attackers, scenarios)
+    if cfg.scenarios_dir is not None:
+        cfg = with_set_scenario(cfg, scenarios)
+    return cfg, scenarios
+
+
+def check_run_dir(run_dir: Path, resume: bool, field: str = "hydra.run.dir") -> None:
+    """Refuse a run directory that holds a run (its ``checkpoints/last.pt``) without
+    ``resume=true``, which would mix two runs' checkpoints and metrics, and ``resume=true``
+    where there is no run to continue."""
+    last = run_dir / "checkpoints" / "last.pt"
+    if resume and not last.is_file():
+        raise ConfigError(f"resume: true, and {run_dir} holds no run to continue (no {last.name})")
+    if not resume and (last.is_file() or (run_dir / "summary.json").is_file()):
+        raise ConfigError(
+            f"{field}: {run_dir} holds a run already; resume=true continues it, another "
+            "directory starts a new one"
+        )
+
+
+def preflight(cfg: DictConfig, run_dir: Path | None, field: str = "hydra.run.dir") -> None:
+    """What :func:`train` checks before its first frame, done before a command line's run
+    directory is made (``train.py``): the config, the scenario set, the run directory (with
+    ``resume``: the saved config and networks), ``init_from``, ``algo.demonstrations`` and,
+    on the embedded dynamics, the env the config builds (its components together, the
+    defender network). ``run_dir`` None: where it is not known yet (a ``${now:...}`` name)."""
+    cfg, scenarios = checked_config(cfg)
+    config = OmegaConf.to_container(cfg, resolve=True)
+    resume_state = None
+    if run_dir is not None:
+        check_run_dir(run_dir, cfg.resume, field)
+        if cfg.resume:
+            resume_state = load_resume_state(run_dir, config)
+    init = warm_start_state(cfg)
+    for path in cfg.algo.demonstrations:
+        checked_plays(cfg, scenarios, path)
+    if cfg.dynamics.name == "airsim":
+        return  # building its env connects to the simulators: train() does, first thing
+    env = build_env(cfg, scenarios=scenarios, split="train", num_envs=1)
+    net = net_spec(env.obs_fn.scale, env.drone_action_spec.shape[-1], cfg.algo)
+    interface = make_interface(cfg, env)
+    if resume_state is not None:
+        check_compatible(resume_state, net, interface, run_dir / "checkpoints" / "last.pt")
+    if init is not None:
+        warm_start_features(*init, net, interface, env)
+    env.close()
+
+
 def make_run_dir(run_dir: str | Path | None) -> Path:
     """The given run directory, or Hydra's output directory under ``@hydra.main``."""
     if run_dir is not None:
@@ -327,7 +378,10 @@ def warm_start_state(cfg: DictConfig) -> tuple[Path, dict[str, Any]] | None:
         path = path / "checkpoints" / "best.pt"
     if not path.is_file():
         raise ConfigError(f"init_from: no checkpoint at {path} (a run directory or a .pt file)")
-    return path, load_checkpoint(path)
+    try:
+        return path, load_checkpoint(path)
+    except ConfigError as e:
+        raise ConfigError(f"init_from: {e}") from None
 
 
 def warm_start(agent: SACAgent, path: Path, state: dict[str, Any], net: NetSpec,
@@ -338,6 +392,17 @@ def warm_start(agent: SACAgent, path: Path, state: dict[str, Any], net: NetSpec,
     one trained alone may start a team of its role against as many opponents (each drone then
     reads it on its ``lone_features``, its team-mates with zero weights), as ``evaluate.py
     lone_in_team=true`` flies it."""
+    features = warm_start_features(path, state, net, interface, env)
+    agent.load_networks(*embedded_networks(state, net, features))
+    alone = len(features) < net.obs_dim
+    log.info("networks start at %s%s", path, ", in each seat of the team" if alone else "")
+
+
+def warm_start_features(
+    path: Path, state: dict[str, Any], net: NetSpec, interface: dict[str, Any], env: PursuitEnv
+) -> list[int] | range:
+    """Check that ``state`` can start this run (:func:`warm_start`) and return the features
+    of this run's observation its networks read: all, or a lone drone's in a team."""
     check_route_path(state, env, path, "init_from")
     saved, here = saved_interface(state), dict(interface)
     here.pop("route_path", None)  # checked above
@@ -350,8 +415,7 @@ def warm_start(agent: SACAgent, path: Path, state: dict[str, Any], net: NetSpec,
     features = env.obs_fn.lone_features(saved["defenders"] > 1) if alone else range(net.obs_dim)
     sizes = {k: v for k, v in net.as_dict().items() if k not in ("obs_dim", "obs_scale")}
     check_same_net(state, {**sizes, "obs_dim": len(features)}, path, "init_from")
-    agent.load_networks(*embedded_networks(state, net, features))
-    log.info("networks start at %s%s", path, ", in each seat of the team" if alone else "")
+    return features
 
 
 def make_interface(cfg: DictConfig, env: PursuitEnv) -> dict[str, Any]:
