@@ -16,7 +16,7 @@ def check(cfg: DictConfig, run_dir: Path | None, field: str) -> None:
     preflight(cfg, run_dir, field)  # before Hydra makes the run directory
 
 
-@hydra_main("train", validate_job=check)
+@hydra_main("train", validate_job=check, resume_subdir=".hydra/resume")
 def main(cfg: DictConfig) -> None:
     from rlplat.experiment import train
 

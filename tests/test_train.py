@@ -9,7 +9,7 @@ import torch
 from omegaconf import OmegaConf
 
 from rlplat.agents.checkpoint import load_checkpoint, load_policy
-from rlplat.errors import ConfigError, DivergenceError
+from rlplat.errors import ConfigError, DivergenceError, RlplatError
 from rlplat.experiment.config import compose_config
 from rlplat.scenarios import STRATEGIES
 
@@ -490,8 +490,15 @@ def test_what_train_would_refuse_later_is_refused_before_any_work(
     tmp_path, scenarios, tiny, train_cli
 ):
     # Each used to pass the command line's check and fail once Hydra had made the run
-    # directory (or, for a path that is not what it should be, with a traceback).
+    # directory (or, for a path that is not what it should be, with a traceback). The check
+    # train.py runs before Hydra starts, in-process; one through the command line.
+    from rlplat.experiment.command_line import check_command_line
+    from rlplat.experiment.training import preflight
+
     run, tiny = tmp_path / "run", (*tiny, f"scenarios_dir={scenarios.path}")
+    assert refused_before_any_work(train_cli, run, *tiny, "init_from=/nonexistent") == (
+        "error: init_from: no checkpoint at /nonexistent (a run directory or a .pt file)"
+    )
     a_file = scenarios.path / "manifest.json"
     for args, refusal in (
         (["init_from=/nonexistent"], "init_from: no checkpoint at /nonexistent"),
@@ -502,9 +509,11 @@ def test_what_train_would_refuse_later_is_refused_before_any_work(
         ([f"scenarios_dir={a_file}"], f"scenarios_dir: {a_file}: not a directory"),
         (["train.device=meta"], "train.device: must be a torch device (cpu, cuda, cuda:1, mps)"),
     ):  # fmt: skip
-        assert refused_before_any_work(train_cli, run, *tiny, *args).startswith(
-            f"error: {refusal}"
-        ), args
+        with pytest.raises(RlplatError) as refused:
+            check_command_line("train", [*tiny, *args, f"hydra.run.dir={run}"],
+                               validate_job=preflight)  # fmt: skip
+        assert str(refused.value).startswith(refusal), args
+    assert not run.exists()
 
 
 def test_a_run_directory_holds_one_run(tmp_path, scenarios, tiny, tiny_run, train_cli):
@@ -522,7 +531,8 @@ def test_a_run_directory_holds_one_run(tmp_path, scenarios, tiny, tiny_run, trai
     assert res.returncode == 2 and res.stderr.startswith("error: resume: the config differs")
     assert {p: p.read_bytes() for p in run.rglob("*") if p.is_file()} == metrics  # untouched
     assert refused_before_any_work(train_cli, tmp_path / "new", *tiny[:-1], "resume=true") == (
-        f"error: resume: true, and {tmp_path / 'new'} holds no run to continue (no last.pt)"
+        f"error: resume: true, and hydra.run.dir={tmp_path / 'new'} holds no run to continue "
+        "(no last.pt)"
     )
     # A sweep into a directory whose job 1 holds a run starts no job.
     sweep = tmp_path / "sweep"
@@ -539,13 +549,17 @@ def test_a_resumed_runs_learning_curve_is_the_whole_run(tmp_path):
     for frames, rate in ((512, 0.2), (1024, 0.3), (1536, 0.4)):
         first.log({"eval/capture_rate": rate}, step=frames)
     first.close()
+    assert not Metrics(tmp_path).history  # a run that does not resume starts its own
     # Resumed from the checkpoint at 1,024 frames: 1,536 is flown, and logged, again.
-    resumed = Metrics(tmp_path)
+    resumed = Metrics(tmp_path, resume=True)
     assert resumed.history["eval/capture_rate"] == [(512, 0.2), (1024, 0.3), (1536, 0.4)]
     resumed.log({"eval/capture_rate": 0.5}, step=1536)
     resumed.log({"eval/capture_rate": 0.6}, step=2048)
-    assert resumed.history["eval/capture_rate"] == [(512, 0.2), (1024, 0.3), (1536, 0.5),
-                                                   (2048, 0.6)]  # fmt: skip
+    curve = [(512, 0.2), (1024, 0.3), (1536, 0.5), (2048, 0.6)]
+    assert resumed.history["eval/capture_rate"] == curve
+    resumed.close()
+    # The CSV holds both attempts at 1,536 frames; a second resume reads the later one.
+    assert Metrics(tmp_path, resume=True).history["eval/capture_rate"] == curve
 
 
 def test_a_resume_keeps_the_record_of_how_the_run_was_launched(

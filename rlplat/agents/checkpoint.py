@@ -51,9 +51,12 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         raise ConfigError(f"checkpoint: no file at {path}")
     try:
         state = torch.load(path, map_location="cpu", weights_only=False)
+    except OSError as e:
+        raise ConfigError(f"checkpoint: {path} cannot be read ({e.strerror or e})") from None
     except Exception as e:  # noqa: BLE001 - whatever the file is, it is not a checkpoint
+        why = " ".join(str(e).split())[:120]
         raise ConfigError(
-            f"checkpoint: {path} is not an rlplat checkpoint ({type(e).__name__})"
+            f"checkpoint: {path} is not an rlplat checkpoint ({type(e).__name__}: {why})"
         ) from None
     if not isinstance(state, dict) or state.get("format_version") != FORMAT_VERSION:
         raise ConfigError(f"checkpoint: {path} is not an rlplat checkpoint (format 1)")

@@ -81,7 +81,7 @@ def make_env(
     given = scenarios is not None
     source, field = (scenarios, "scenarios") if given else (cfg.scenarios_dir, "scenarios_dir")
     loaded = resolve_scenarios(cfg, source, field)
-    require_scenarios(loaded, [split], "the env")
+    require_scenarios(loaded, [split], "the env", field)
     flown_attackers(cfg.env.attackers, loaded)
     if source is not None:
         cfg = with_set_scenario(cfg, loaded)  # the set's config: what training flies

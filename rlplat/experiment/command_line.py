@@ -28,6 +28,7 @@ def hydra_main(
     config_name: str,
     validate: Callable[[Any], None] | None = None,
     validate_job: Callable[[Any, Path | None, str], None] | None = None,
+    resume_subdir: str | None = None,
 ) -> Callable[[Callable[[Any], T]], Callable[..., T | None]]:
     """``@hydra.main`` on ``conf/<config_name>.yaml``, whose bad command lines are one line.
 
@@ -40,7 +41,11 @@ def hydra_main(
 
     ``validate_job(cfg, job_dir, field)`` checks a job against the directory Hydra will make
     for it (``hydra.run.dir``, or a sweep's ``hydra.sweep.dir``/``subdir``, named by
-    ``field``; None where its name is not known before Hydra starts, e.g. ``${now:...}``)."""
+    ``field``; a ``${now:...}`` name resolves to the time of the check, a fresh directory;
+    None where the name is not known before Hydra starts, e.g. past the jobs checked one by
+    one). ``resume_subdir``: with ``resume=true`` on the command line, Hydra writes its record
+    of the job there (``hydra.output_subdir``), leaving the run's own ``.hydra/`` as it was
+    launched."""
 
     def decorate(fn: Callable[[Any], T]) -> Callable[..., T | None]:
         import hydra
@@ -61,19 +66,15 @@ def hydra_main(
                     sys.exit(2)
                 except Exception:  # noqa: BLE001 - not ours to word: Hydra reports it, as before
                     pass
-            if config_name == "train" and _resumes(sys.argv[1:]):
+            if resume_subdir is not None and _resumes(sys.argv[1:]):
                 # The run's .hydra/ stays as it was launched (what aggregate names a variant
                 # by); the resume's own goes beside it.
-                sys.argv.append(f"hydra.output_subdir={RESUME_SUBDIR}")
+                sys.argv.append(f"hydra.output_subdir={resume_subdir}")
             return run()
 
         return entry
 
     return decorate
-
-
-#: Where ``train.py resume=true`` writes Hydra's record of the resume, in the run directory.
-RESUME_SUBDIR = ".hydra/resume"
 
 
 def _resumes(argv: Sequence[str]) -> bool:

@@ -21,5 +21,6 @@ def compose_config(
     args = {"config_name": config_name, "overrides": list(overrides), "return_hydra_config": hydra}
     if GlobalHydra.instance().is_initialized():
         return compose(**args)
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+    # The job is named after its config, as under the entry point (${hydra.job.name}).
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3", job_name=config_name):
         return compose(**args)

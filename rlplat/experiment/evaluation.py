@@ -104,10 +104,10 @@ def checkpoint_label(run_dir: Path, ckpt: str, path: Path) -> str:
     ``best.pt`` does not take the place of this run's own."""
     if ckpt in CHECKPOINT_NAMES:
         return ckpt
-    if path.resolve().parent == (run_dir / "checkpoints").resolve():
+    if path.parent.resolve() == (run_dir / "checkpoints").resolve():
         return path.stem
     owner = path.parent.parent if path.parent.name == "checkpoints" else path.parent
-    return f"{owner.resolve().name}-{path.stem}"
+    return f"{owner.resolve().name or 'root'}-{path.stem}"
 
 
 def default_export_dir(run_dir: Path, ckpt: str, path: Path) -> Path:

@@ -101,13 +101,15 @@ def with_set_scenario(cfg: DictConfig, scenarios: ScenarioSet) -> DictConfig:
     return cfg
 
 
-def require_scenarios(scenarios: ScenarioSet, splits: Sequence[str], needed_by: str) -> None:
-    """Refuse, in one line, a set with no scenario in one of ``splits`` (a set may leave a
-    split empty, e.g. a test-only set; what flies it may not)."""
+def require_scenarios(
+    scenarios: ScenarioSet, splits: Sequence[str], needed_by: str, field: str = "scenarios_dir"
+) -> None:
+    """Refuse, in one line naming ``field``, a set with no scenario in one of ``splits`` (a
+    set may leave a split empty, e.g. a test-only set; what flies it may not)."""
     for split in splits:
         if len(scenarios.split(split)) == 0:
             raise ConfigError(
-                f"scenarios_dir: {scenarios.path} has no {split} scenarios; {needed_by} needs "
+                f"{field}: {scenarios.path} has no {split} scenarios; {needed_by} needs "
                 f"the {'/'.join(splits)} split{'s' if len(splits) > 1 else ''}"
             )
 

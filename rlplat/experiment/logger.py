@@ -49,9 +49,10 @@ class Metrics:
     written; ``extra`` is the configured logger when it is not CSV.
     """
 
-    def __init__(self, run_dir: Path, extra: Logger | None = None) -> None:
+    def __init__(self, run_dir: Path, extra: Logger | None = None, resume: bool = False) -> None:
         self.history: dict[str, list[tuple[int, float]]] = defaultdict(list)
-        self._earlier = set(self._read_history(Path(run_dir) / "metrics" / "scalars"))
+        scalars = Path(run_dir) / "metrics" / "scalars"
+        self._earlier = set(self._read_history(scalars) if resume else ())
         self.loggers: list[Logger] = [CSVLogger(exp_name="metrics", log_dir=str(run_dir))]
         if extra is not None:
             self.loggers.append(extra)
@@ -65,9 +66,15 @@ class Metrics:
             with open(path, newline="") as f:
                 rows = [r for r in csv.reader(f) if len(r) == 2]
             try:
-                self.history[name] = [(int(float(s)), float(v)) for s, v in rows]
+                points = [(int(float(s)), float(v)) for s, v in rows]
             except ValueError:  # not a file of ours: left out of the curve
                 continue
+            kept: list[tuple[int, float]] = []
+            for step, value in points:  # an earlier resume logged again from its checkpoint
+                while kept and kept[-1][0] >= step:
+                    kept.pop()
+                kept.append((step, value))
+            self.history[name] = kept
             names.append(name)
         return names
 

@@ -127,9 +127,10 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     """
     # Check everything before any work starts.
     cfg, scenarios = checked_config(cfg)
+    field = "hydra.run.dir" if run_dir is None else "run_dir"
     run_dir, algo = make_run_dir(run_dir), cfg.algo
     config = OmegaConf.to_container(cfg, resolve=True)
-    check_run_dir(run_dir, cfg.resume)
+    check_run_dir(run_dir, cfg.resume, field)
     resume_state = load_resume_state(run_dir, config) if cfg.resume else None
     init = warm_start_state(cfg)
     if cfg.train.threads is not None:
@@ -170,7 +171,9 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     # Create the logger; measure the scripted reference on the validation split
     run_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(run_dir / "config.yaml", OmegaConf.to_yaml(config))
-    run.metrics = Metrics(run_dir, make_logger(cfg.logger, run_dir, cfg.drone.name, config))
+    run.metrics = Metrics(
+        run_dir, make_logger(cfg.logger, run_dir, cfg.drone.name, config), resume=cfg.resume
+    )
     reference = fly_reference(cfg, run, "val", device)
     run.metrics.log({f"reference/{k}": v for k, v in reference.summary().items()}, state.frames)
     log.info("%s on the validation split: %s", REFERENCE[run.role], outcome(reference, run.role))
@@ -313,7 +316,9 @@ def check_run_dir(run_dir: Path, resume: bool, field: str = "hydra.run.dir") -> 
     where there is no run to continue."""
     last = run_dir / "checkpoints" / "last.pt"
     if resume and not last.is_file():
-        raise ConfigError(f"resume: true, and {run_dir} holds no run to continue (no {last.name})")
+        raise ConfigError(
+            f"resume: true, and {field}={run_dir} holds no run to continue (no {last.name})"
+        )
     if not resume and (last.is_file() or (run_dir / "summary.json").is_file()):
         raise ConfigError(
             f"{field}: {run_dir} holds a run already; resume=true continues it, another "
@@ -326,7 +331,10 @@ def preflight(cfg: DictConfig, run_dir: Path | None, field: str = "hydra.run.dir
     directory is made (``train.py``): the config, the scenario set, the run directory (with
     ``resume``: the saved config and networks), ``init_from``, ``algo.demonstrations`` and,
     on the embedded dynamics, the env the config builds (its components together, the
-    defender network). ``run_dir`` None: where it is not known yet (a ``${now:...}`` name)."""
+    defender network). ``run_dir`` None: where it is not known before Hydra starts (a job
+    of a sweep past the jobs checked one by one). Warnings of the set or the env show here
+    and again in the job; an uncached scenario set is generated here, in the launching
+    process."""
     cfg, scenarios = checked_config(cfg)
     config = OmegaConf.to_container(cfg, resolve=True)
     resume_state = None

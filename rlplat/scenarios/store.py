@@ -368,7 +368,7 @@ def write_scenario_set(spec: ScenarioSpec, out_dir: str | os.PathLike) -> dict[s
     }
     text = json.dumps(manifest, indent=2) + "\n"
     before = out / MANIFEST
-    if before.is_file() and before.read_text() != text:  # runs may cite the one it replaces
+    if before.is_file() and before.read_bytes() != text.encode():  # runs may cite the one replaced
         log.warning("replacing the scenario set in %s (manifest sha256 %s) by another",
                     out, sha256_bytes(before.read_bytes())[:16])  # fmt: skip
     try:
