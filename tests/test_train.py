@@ -516,9 +516,9 @@ def test_what_train_would_refuse_later_is_refused_before_any_work(
     assert not run.exists()
 
 
-def test_a_run_directory_holds_one_run(tmp_path, scenarios, tiny, tiny_run, train_cli):
+def test_a_run_directory_holds_one_run(tmp_path, scenarios, tiny, tiny_run, train_cli, caplog):
     run = tmp_path / "run"
-    tiny_run(scenarios, run)
+    first = tiny_run(scenarios, run)
     metrics = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()}
     tiny = (*tiny, f"scenarios_dir={scenarios.path}", f"hydra.run.dir={run}")
     res = train_cli(*tiny, "seed=5")  # another run into it would mix their files
@@ -540,6 +540,11 @@ def test_a_run_directory_holds_one_run(tmp_path, scenarios, tiny, tiny_run, trai
     res = train_cli("-m", *tiny[:-1], "seed=0,1", f"hydra.sweep.dir={sweep}")
     assert res.returncode == 2 and not (sweep / "0").exists()
     assert res.stderr.startswith(f"error: hydra.sweep.dir: {sweep / '1'} holds a run already")
+    # A resume whose budget the run has spent trains nothing, and says so.
+    with caplog.at_level("WARNING", logger="rlplat.experiment.training"):
+        again = tiny_run(scenarios, run, "resume=true", "train.total_frames=128")
+    assert f"train.total_frames=128: the run has {first['frames']} frames already" in caplog.text
+    assert (again["frames"], again["updates"]) == (first["frames"], first["updates"])
 
 
 def test_a_resumed_runs_learning_curve_is_the_whole_run(tmp_path):

@@ -167,6 +167,12 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
         set_rng_state(resume_state["rng"])
         env.sampler.set_state(resume_state["scenario_rng"])
         log.info("resuming %s at %d frames", run_dir, state.frames)
+    done_before = resume_state is not None and state.frames >= cfg.train.total_frames
+    if done_before:
+        log.warning("train.total_frames=%d: the run has %d frames already; nothing is "
+                    "trained, the best checkpoint is tested again (a larger "
+                    "train.total_frames trains on)", cfg.train.total_frames,
+                    state.frames)  # fmt: skip
 
     # Create the logger; measure the scripted reference on the validation split
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -194,7 +200,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     # Scripted start
     start = time.perf_counter() - state.wall_time_s
     deadline = None if cfg.train.max_minutes is None else start + 60.0 * cfg.train.max_minutes
-    if scripted_start:
+    if scripted_start and not done_before:
         # The scripted start's frames count toward the budget: a fresh run's stops with it.
         fill = algo.init_random_frames
         if resume_state is None and cfg.train.total_frames < fill:
@@ -207,7 +213,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
             state.frames += prefilled
         log.info("replay buffer filled with %d frames of noisy %s (%d transitions)",
                  prefilled, algo.init_policy, len(buffer))  # fmt: skip
-    for plays in demonstration_plays:
+    for plays in [] if done_before else demonstration_plays:
         if not plays.scenario_ids:
             log.warning("algo.demonstrations: %s holds no play that captured", plays.path)
             continue
