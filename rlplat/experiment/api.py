@@ -7,7 +7,7 @@ import os
 import torch
 
 from rlplat.envs.gym import PursuitGymEnv
-from rlplat.envs.pursuit import PursuitEnv, flown_attackers
+from rlplat.envs.pursuit import PursuitEnv
 from rlplat.errors import ConfigError
 from rlplat.experiment.config import compose_config
 from rlplat.experiment.factory import (
@@ -82,7 +82,6 @@ def make_env(
     source, field = (scenarios, "scenarios") if given else (cfg.scenarios_dir, "scenarios_dir")
     loaded = resolve_scenarios(cfg, source, field)
     require_scenarios(loaded, [split], "the env", field)
-    flown_attackers(cfg.env.attackers, loaded)
     if source is not None:
         cfg = with_set_scenario(cfg, loaded)  # the set's config: what training flies
     return build_env(cfg, scenarios=loaded, split=split, num_envs=num_envs, device=device,

@@ -51,16 +51,15 @@ class Metrics:
 
     def __init__(self, run_dir: Path, extra: Logger | None = None, resume: bool = False) -> None:
         self.history: dict[str, list[tuple[int, float]]] = defaultdict(list)
-        scalars = Path(run_dir) / "metrics" / "scalars"
-        self._earlier = set(self._read_history(scalars) if resume else ())
+        if resume:
+            self._read_history(Path(run_dir) / "metrics" / "scalars")
         self.loggers: list[Logger] = [CSVLogger(exp_name="metrics", log_dir=str(run_dir))]
         if extra is not None:
             self.loggers.append(extra)
 
-    def _read_history(self, scalars: Path) -> list[str]:
+    def _read_history(self, scalars: Path) -> None:
         """A resumed run's history so far, from its CSV files (the learning curve is the whole
-        run's); the names read."""
-        names = []
+        run's)."""
         for path in sorted(scalars.rglob("*.csv")) if scalars.is_dir() else []:
             name = path.relative_to(scalars).with_suffix("").as_posix()
             with open(path, newline="") as f:
@@ -69,22 +68,21 @@ class Metrics:
                 points = [(int(float(s)), float(v)) for s, v in rows]
             except ValueError:  # not a file of ours: left out of the curve
                 continue
-            kept: list[tuple[int, float]] = []
-            for step, value in points:  # an earlier resume logged again from its checkpoint
-                while kept and kept[-1][0] >= step:
-                    kept.pop()
-                kept.append((step, value))
-            self.history[name] = kept
-            names.append(name)
-        return names
+            for step, value in points:
+                self._append(name, step, value)
+
+    def _append(self, name: str, step: int, value: float) -> None:
+        """Add a point to the history; a resume logs again from its checkpoint's frames on,
+        and the points it flies again replace the earlier attempt's."""
+        points = self.history[name]
+        while points and points[-1][0] >= step:
+            points.pop()
+        points.append((step, value))
 
     def log(self, values: Mapping[str, float], step: int) -> None:
         for name, value in values.items():
             value = float(value)
-            if name in self._earlier:  # a resume logs again from its checkpoint's frames on
-                self._earlier.discard(name)
-                self.history[name] = [(s, v) for s, v in self.history[name] if s < step]
-            self.history[name].append((step, value))
+            self._append(name, step, value)
             for logger in self.loggers:
                 logger.log_scalar(name, value, step=step)
 

@@ -126,13 +126,11 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     ``metrics/`` (CSV), ``learning_curve.png`` and ``summary.json``.
     """
     # Check everything before any work starts.
-    cfg, scenarios = checked_config(cfg)
     field = "hydra.run.dir" if run_dir is None else "run_dir"
-    run_dir, algo = make_run_dir(run_dir), cfg.algo
-    config = OmegaConf.to_container(cfg, resolve=True)
-    check_run_dir(run_dir, cfg.resume, field)
-    resume_state = load_resume_state(run_dir, config) if cfg.resume else None
-    init = warm_start_state(cfg)
+    run_dir = make_run_dir(run_dir)
+    begin = checked_start(cfg, run_dir, field)
+    cfg, scenarios, config, algo = begin.cfg, begin.scenarios, begin.config, begin.cfg.algo
+    resume_state, init = begin.resume_state, begin.init
     if cfg.train.threads is not None:
         # On a few cores, runs side by side (hydra/launcher=joblib) want one thread each:
         # torch's threads wait for each other on every small kernel when a core is taken.
@@ -141,7 +139,6 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
 
     # Create the environments
     evaders = network_defenders(scenarios, algo.evader_weight)
-    demonstration_plays = [checked_plays(cfg, scenarios, path) for path in algo.demonstrations]
     env = build_env(cfg, scenarios=scenarios, split="train", num_envs=algo.num_envs, device=device)
     train_env = make_train_env(env)
     val_env = make_eval_env(cfg, scenarios, "val", device, compiled=True)
@@ -213,7 +210,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
             state.frames += prefilled
         log.info("replay buffer filled with %d frames of noisy %s (%d transitions)",
                  prefilled, algo.init_policy, len(buffer))  # fmt: skip
-    for plays in [] if done_before else demonstration_plays:
+    for plays in [] if done_before else begin.plays:
         if not plays.scenario_ids:
             log.warning("algo.demonstrations: %s holds no play that captured", plays.path)
             continue
@@ -304,16 +301,38 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
 # Set-up ----------------------------------------------------------------------------------
 
 
-def checked_config(cfg: DictConfig) -> tuple[DictConfig, ScenarioSet]:
-    """The config a run flies, checked, and its scenario set: with ``scenarios_dir``, the
-    set's own scenario config replaces the composed one (what it flies, recorded)."""
+@dataclass
+class Start:
+    """What a run starts from, checked (:func:`checked_start`)."""
+
+    cfg: DictConfig  # with scenarios_dir, its scenario node is the set's own config
+    scenarios: ScenarioSet
+    config: dict[str, Any]  # cfg resolved: what config.yaml records
+    resume_state: dict[str, Any] | None  # with resume: the run's last.pt
+    init: tuple[Path, dict[str, Any]] | None  # init_from's path and checkpoint
+    plays: list[Plays]  # of algo.demonstrations
+
+
+def checked_start(cfg: DictConfig, run_dir: Path | None, field: str = "hydra.run.dir") -> Start:
+    """The config a run flies, checked, and what it starts from: its scenario set (with
+    ``scenarios_dir``, the set's own scenario config replaces the composed one: what it
+    flies, recorded), the run directory (``run_dir`` named by ``field``; None: not known
+    yet) and, with ``resume``, its checkpoint against this config, ``init_from`` and
+    ``algo.demonstrations``."""
     validate_train_config(cfg)
     scenarios = resolve_scenarios(cfg, cfg.scenarios_dir)
     require_scenarios(scenarios, SPLITS, "training")  # it validates, and tests at its end
     flown_attackers(cfg.env.attackers, scenarios)
     if cfg.scenarios_dir is not None:
         cfg = with_set_scenario(cfg, scenarios)
-    return cfg, scenarios
+    config = OmegaConf.to_container(cfg, resolve=True)
+    resume_state = None
+    if run_dir is not None:
+        check_run_dir(run_dir, cfg.resume, field)
+        if cfg.resume:
+            resume_state = load_resume_state(run_dir, config)
+    plays = [checked_plays(cfg, scenarios, path) for path in cfg.algo.demonstrations]
+    return Start(cfg, scenarios, config, resume_state, warm_start_state(cfg), plays)
 
 
 def check_run_dir(run_dir: Path, resume: bool, field: str = "hydra.run.dir") -> None:
@@ -341,25 +360,17 @@ def preflight(cfg: DictConfig, run_dir: Path | None, field: str = "hydra.run.dir
     of a sweep past the jobs checked one by one). Warnings of the set or the env show here
     and again in the job; an uncached scenario set is generated here, in the launching
     process."""
-    cfg, scenarios = checked_config(cfg)
-    config = OmegaConf.to_container(cfg, resolve=True)
-    resume_state = None
-    if run_dir is not None:
-        check_run_dir(run_dir, cfg.resume, field)
-        if cfg.resume:
-            resume_state = load_resume_state(run_dir, config)
-    init = warm_start_state(cfg)
-    for path in cfg.algo.demonstrations:
-        checked_plays(cfg, scenarios, path)
+    start = checked_start(cfg, run_dir, field)
+    cfg = start.cfg
     if cfg.dynamics.name == "airsim":
         return  # building its env connects to the simulators: train() does, first thing
-    env = build_env(cfg, scenarios=scenarios, split="train", num_envs=1)
+    env = build_env(cfg, scenarios=start.scenarios, split="train", num_envs=1)
     net = net_spec(env.obs_fn.scale, env.drone_action_spec.shape[-1], cfg.algo)
     interface = make_interface(cfg, env)
-    if resume_state is not None:
-        check_compatible(resume_state, net, interface, run_dir / "checkpoints" / "last.pt")
-    if init is not None:
-        warm_start_features(*init, net, interface, env)
+    if start.resume_state is not None:
+        check_compatible(start.resume_state, net, interface, run_dir / "checkpoints" / "last.pt")
+    if start.init is not None:
+        warm_start_features(*start.init, net, interface, env)
     env.close()
 
 

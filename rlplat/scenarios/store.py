@@ -367,10 +367,10 @@ def write_scenario_set(spec: ScenarioSpec, out_dir: str | os.PathLike) -> dict[s
         "quality": quality_report(spec, splits),
     }
     text = json.dumps(manifest, indent=2) + "\n"
-    before = out / MANIFEST
-    if before.is_file() and before.read_bytes() != text.encode():  # runs may cite the one replaced
+    before = (out / MANIFEST).read_bytes() if (out / MANIFEST).is_file() else None
+    if before is not None and before != text.encode():  # runs may cite the one replaced
         log.warning("replacing the scenario set in %s (manifest sha256 %s) by another",
-                    out, sha256_bytes(before.read_bytes())[:16])  # fmt: skip
+                    out, sha256_bytes(before)[:16])  # fmt: skip
     try:
         for split, data in files.items():
             atomic_write_bytes(out / f"{split}.jsonl", data)
