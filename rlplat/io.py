@@ -1,4 +1,5 @@
-"""Atomic file writes: a reader never sees a half-written file."""
+"""Atomic file writes: a reader never sees a half-written file; and whether a folder can be
+written before any work."""
 
 from __future__ import annotations
 
@@ -6,6 +7,8 @@ import hashlib
 import os
 import tempfile
 from pathlib import Path
+
+from rlplat.errors import ConfigError
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
@@ -35,3 +38,17 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
 def sha256_bytes(data: bytes) -> str:
     """Hex SHA-256 of ``data``."""
     return hashlib.sha256(data).hexdigest()
+
+
+def check_writable_dir(path: str | os.PathLike, field: str) -> Path:
+    """``path`` as a folder files can be written to, or made in: itself or its nearest
+    existing parent must be a folder this process may write. Makes nothing; a one-line
+    :class:`ConfigError` naming ``field`` otherwise (before any work, not after it)."""
+    path = Path(path)
+    existing = next(p for p in (path, *path.parents) if p.exists() or p == p.parent)
+    if not existing.is_dir():
+        what = "is a file" if existing == path else f"{existing} is a file"
+        raise ConfigError(f"{field}: cannot write to {path}: {what}")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ConfigError(f"{field}: cannot write to {path}: {existing} is not writable")
+    return path

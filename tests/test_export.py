@@ -299,7 +299,29 @@ def test_bad_input_is_one_line_and_writes_nothing(run, tmp_path, monkeypatch):
     with pytest.raises(ConfigError) as e:
         export_run(run, out_dir=out, compiler="no-such-cc")
     assert _one_line(e).startswith("compiler: no C compiler 'no-such-cc' on PATH")
+    # Before any rollout: a compiler that builds nothing, an out_dir that cannot be written.
+    monkeypatch.setattr(export_module, "collect_observations", _no_work)
+    fake = tmp_path / "fake-cc"
+    fake.write_text("#!/bin/sh\nexit 0\n")
+    fake.chmod(0o755)
+    with pytest.raises(ConfigError) as e:
+        export_run(run, out_dir=out, compiler=str(fake))
+    assert _one_line(e) == (
+        f"compiler: {fake} builds no loadable shared library from C99 (no file written)"
+    )
+    a_file = tmp_path / "a-file"
+    a_file.write_text("")
+    for where, reason in ((a_file, "is a file"), (a_file / "out", f"{a_file} is a file")):
+        with pytest.raises(ConfigError) as e:
+            export_run(run, out_dir=where)
+        assert _one_line(e) == f"out_dir: cannot write to {where}: {reason}"
+        with pytest.raises(ConfigError, match=f"^out_dir: cannot write to {where}: "):
+            evaluate_run(run, out_dir=where, plots=False)
     assert not out.exists()
+
+
+def _no_work(*args, **kwargs):
+    raise AssertionError("the export started its rollouts")
 
 
 def _net(state: dict) -> dict:
@@ -330,7 +352,7 @@ def _spec():
     ],
 )  # fmt: skip
 def test_a_guided_controller_exports_with_its_guidance(
-    scenarios, tmp_path, short_run, drone, action_name, unit, header, obs_dim
+    scenarios, tmp_path, short_run, caplog, drone, action_name, unit, header, obs_dim
 ):
     # attacker_v4 learns a correction to proportional navigation, attacker_v5 the law's
     # parameters, attacker_v10 a correction to the route-intercept law (attacker_v11 seeing
@@ -393,6 +415,12 @@ def test_a_guided_controller_exports_with_its_guidance(
                 evaluate_run(run, ckpt="last", plots=False)
         else:
             assert "capture_rate" in evaluate_run(run, ckpt="last", plots=False).summary
+        # A checkpoint of another drone is refused in one line, with no warning before it
+        # about the route path it saved none of.
+        caplog.clear()
+        with caplog.at_level(logging.WARNING), pytest.raises(ConfigError) as e:
+            export_run(run, ckpt=str(shipped_path(SHIPPED_DEFENDER)), **QUICK)
+        assert _one_line(e).startswith("ckpt: ") and not caplog.records, caplog.text
 
 
 def test_implementations_that_differ_fail_the_export_and_write_nothing(run, tmp_path):
@@ -418,11 +446,11 @@ def test_configs_name_the_offending_field():
 
 
 def test_evaluating_an_artifact_needs_its_export_as_written(run, exported, tmp_path):
-    copy = tmp_path / "run"
+    copy = tmp_path / "a run"  # the command to run is quoted for a shell
     shutil.copytree(run, copy, ignore=shutil.ignore_patterns("eval", "export"))
     with pytest.raises(ConfigError) as e:
         evaluate_run(copy, policy="onnx", ckpt="last")
-    assert _one_line(e).endswith(f"run `python export.py run_dir={copy} ckpt=last` first")
+    assert _one_line(e).endswith(f"run `python export.py 'run_dir={copy}' ckpt=last` first")
     shutil.copytree(run / "export", copy / "export")
     source = copy / "export" / "best" / "policy.c"
     source.write_text(source.read_text().replace("1.20000005f", "1.0f"))
@@ -553,8 +581,12 @@ def test_two_controllers_with_their_own_prefixes_link_into_one_program(run, tmp_
     d_obs = torch.tensor([3.0 - float(i % 7) for i in range(actors["defender"].obs_dim)])
     expected = torch.cat([actors["attacker"](a_obs[None])[0], actors["defender"](d_obs[None])[0]])
     assert got.shape == expected.shape and np.abs(got - expected.numpy()).max() <= 1e-5
-    with pytest.raises(ConfigError, match=r"^prefix: '9lives' does not start C names"):
-        c_sources(actors["attacker"], prefix="9lives")
+    # Prefixes whose names would clash with another's (one uppercase guard for two cases) or
+    # that C reserves (a leading or double underscore).
+    for bad in ("9lives", "Attacker", "_", "__x", "a__b", "a_", "a-b", "x" * 25):
+        with pytest.raises(ConfigError, match=rf"^prefix: '{bad}' does not start C names"):
+            c_sources(actors["attacker"], prefix=bad)
+    assert "void blue_2_policy(" in c_sources(actors["attacker"], prefix="blue_2")[0]
 
 
 def test_a_team_run_exports_and_flies_one_call_per_drone(tmp_path, write_set, short_run):

@@ -49,7 +49,11 @@ C_LAYERS: dict[type[nn.Module], str] = {
 ONNX_OPSET = 20
 #: The prefix of the C names unless the export says otherwise.
 C_PREFIX = "rlplat"
-_C_IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,23}")
+#: A prefix: lowercase words joined by single underscores. Lowercase, so that two prefixes
+#: never give one uppercase guard (``Attacker`` and ``attacker``: ``ATTACKER_POLICY_H``); no
+#: leading, trailing or double underscore, names C reserves (``__POLICY_H``).
+_C_PREFIX = re.compile(r"[a-z][a-z0-9]*(?:_[a-z0-9]+)*")
+_C_PREFIX_MAX = 24
 
 
 def c_api(prefix: str = C_PREFIX) -> str:
@@ -59,12 +63,17 @@ def c_api(prefix: str = C_PREFIX) -> str:
 
 
 def check_prefix(prefix: Any, field: str = "prefix") -> str:
-    """``prefix`` if it makes C identifiers (a letter or ``_``, then letters, digits or ``_``;
-    at most 24 characters); otherwise a one-line :class:`ConfigError` naming ``field``."""
-    if not isinstance(prefix, str) or not _C_IDENTIFIER.fullmatch(prefix):
+    """``prefix`` if it starts C names that no other prefix shares (lowercase letters and
+    digits, words joined by single ``_``, starting with a letter; at most 24 characters);
+    otherwise a one-line :class:`ConfigError` naming ``field``."""
+    if (
+        not isinstance(prefix, str)
+        or len(prefix) > _C_PREFIX_MAX
+        or not _C_PREFIX.fullmatch(prefix)
+    ):
         raise ConfigError(
-            f"{field}: {prefix!r} does not start C names (a letter or _, then letters, digits "
-            "or _, at most 24 characters)"
+            f"{field}: {prefix!r} does not start C names (lowercase letters and digits, words "
+            f"joined by single _, starting with a letter; at most {_C_PREFIX_MAX} characters)"
         )
     return prefix
 

@@ -49,15 +49,36 @@ def c_prefix(header: str) -> str:
     return found.group(1)
 
 
+#: What :func:`find_compiler` builds to see that a compiler works: C99 that calls ``tanhf``.
+_PROBE = "#include <math.h>\nfloat rlplat_probe(float x) { return tanhf(x); }\n"
+
+
 def find_compiler(compiler: str = "cc") -> str:
-    """The path of the C compiler ``compiler``; a one-line error if there is none."""
+    """The path of the C compiler ``compiler``, once it has built and loaded a shared library
+    from a line of C99 with the flags of every build; a one-line error if there is none or it
+    builds nothing (before any work: the checks it serves come after minutes of rollouts)."""
     path = shutil.which(compiler)
     if path is None:
         raise ConfigError(
             f"compiler: no C compiler '{compiler}' on PATH; install one (e.g. gcc) or name it "
             "with compiler=..."
         )
+    with tempfile.TemporaryDirectory(prefix="rlplat-c-") as tmp:
+        source, library = Path(tmp) / "probe.c", Path(tmp) / "libprobe.so"
+        source.write_text(_PROBE)
+        _compile(path, [source], library, "-shared", "-fPIC")
+        _load(library, f"compiler: {compiler} builds no loadable shared library from C99")
     return path
+
+
+def _load(library: Path, what: str) -> ctypes.CDLL:
+    """``library`` loaded; a one-line :class:`ConfigError` starting with ``what`` if it is
+    missing or not a library (a "compiler" that exits 0 and writes nothing)."""
+    try:
+        return ctypes.CDLL(str(library))
+    except OSError as e:
+        reason = "no file written" if not library.is_file() else str(e).rsplit(": ", 1)[-1]
+        raise ConfigError(f"{what} ({reason})") from None
 
 
 def compiler_version(compiler: str) -> str:
@@ -105,7 +126,7 @@ class CPolicy:
     def __init__(
         self, library: Path, obs_dim: int, action_dim: int, prefix: str = "rlplat"
     ) -> None:
-        self._lib = ctypes.CDLL(str(library))
+        self._lib = _load(library, f"compiler: {library.name} cannot be loaded")
         self._fn = getattr(self._lib, f"{prefix}_policy")
         self._fn.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
         self._fn.restype = None

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shlex
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -53,7 +54,7 @@ from rlplat.experiment.schema import (
     validate_dynamics_swap,
     validate_evaluate_config,
 )
-from rlplat.io import atomic_write_text, sha256_bytes
+from rlplat.io import atomic_write_text, check_writable_dir, sha256_bytes
 from rlplat.scenarios import SPLITS, ScenarioSet
 
 log = logging.getLogger(__name__)
@@ -121,8 +122,9 @@ def artifact_files(
     """The exported files ``policy`` flies, from the export folder ``where``, checked against
     the export's card: they must be the ones exported from the checkpoint at ``path`` as it
     is now."""
-    out = "" if where == default_export_dir(run_dir, ckpt, path) else f" out_dir={where}"
-    command = f"python export.py run_dir={run_dir} ckpt={ckpt}{out}"
+    out = "" if where == default_export_dir(run_dir, ckpt, path) else f"out_dir={where}"
+    words = ["python", "export.py", f"run_dir={run_dir}", f"ckpt={ckpt}"] + ([out] if out else [])
+    command = shlex.join(words)
     card_path = where / "card.json"
     if not card_path.is_file():
         raise ConfigError(f"policy: {policy} needs the export in {where}; run `{command}` first")
@@ -190,7 +192,6 @@ def check_policy_fits(
     drone then flies it on its observation's ``lone_features``, which this returns (None
     otherwise). A refusal names ``field`` (where the checkpoint came from) and, for team sizes,
     the ``settings`` of the command that choose them."""
-    check_route_path(state, env, path, field)
     interface = saved_interface(state)
     interface.pop("route_path", None)
     counts = {"attackers": env.num_attackers, "defenders": env.num_defenders}
@@ -236,6 +237,7 @@ def check_policy_fits(
             raise ConfigError(
                 f"{field}: {path} was trained with {key}={saved}, the run has {value}"
             )
+    check_route_path(state, env, path, field)  # last: it may only warn, about a fitting one
     return features
 
 
@@ -350,7 +352,7 @@ def evaluate_run(
     if out_dir is None:
         suffix = f"-{cfg.dynamics.name}" if swapped else ""
         out_dir = evaluations_dir(run_dir, eval_dir) / f"{split}-{name}{suffix}"
-    out_dir = Path(out_dir)
+    out_dir = check_writable_dir(out_dir, "out_dir")
     summary_path = run_dir / "summary.json"
     run_summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
     state = load_checkpoint(path) if path else None

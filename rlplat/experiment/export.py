@@ -72,7 +72,7 @@ from rlplat.experiment.evaluation import (
 )
 from rlplat.experiment.factory import build_eval_env, require_scenarios, resolve_scenarios
 from rlplat.experiment.schema import validate_export_config
-from rlplat.io import atomic_write_bytes, atomic_write_text, sha256_bytes
+from rlplat.io import atomic_write_bytes, atomic_write_text, check_writable_dir, sha256_bytes
 from rlplat.scenarios import SPLITS
 
 log = logging.getLogger(__name__)
@@ -408,6 +408,7 @@ def export_run(
         src = controller_source(Path(controller), out_dir, scenarios_dir)
     else:
         src = run_source(Path(run_dir), ckpt, out_dir, scenarios_dir)
+    check_writable_dir(src.out_dir, "out_dir")
     scenarios = resolve_scenarios(src.cfg, src.scenarios_dir)
     same_set = check_scenarios(scenarios, src.scenario_digest, False, f"recorded with {src.path}")
     require_scenarios(scenarios, [split], "the export's rollouts")
