@@ -172,6 +172,12 @@ def test_the_written_files_compute_the_torch_actions(run, exported, scenarios, t
     onnx_policy = OnnxPolicy((out / "policy.onnx").read_bytes(), 9, 3)
     for got in (c_policy(obs.numpy()), onnx_policy(obs.numpy())):
         assert got.shape == expected.shape and np.abs(got - expected).max() <= 1e-5
+    # The card's reference pairs: rollout observations (the first is the rollout's) and the
+    # torch actions, which the C computes from the exact values written.
+    pairs = exported["equivalence"]["samples"]
+    assert len(pairs) == 16 and pairs[0]["observation"] == obs[0].tolist()
+    reference = np.array([p["observation"] for p in pairs], dtype=np.float32)
+    assert np.abs(c_policy(reference) - np.array([p["action"] for p in pairs])).max() <= 1e-5
     assert np.abs(expected).max() <= 1.0
     # A NaN observation gives NaN actions in C as in torch, not a finite made-up command.
     bad = obs[:4].clone()

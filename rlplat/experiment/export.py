@@ -81,6 +81,9 @@ log = logging.getLogger(__name__)
 FILES = ("policy.onnx", "policy.h", "policy.c", "card.json")
 #: Observations per ONNX Runtime batch in the timing.
 ONNX_BATCH = 1024
+#: Rollout observations the card lists with the torch actor's actions: reference pairs that
+#: check a build of ``policy.c`` (another compiler, flags, target) without Python.
+CARD_SAMPLES = 16
 
 
 @dataclass(frozen=True)
@@ -192,6 +195,13 @@ def torch_actions(state: dict[str, Any], obs: torch.Tensor) -> np.ndarray:
     td = TensorDict(observation=obs, batch_size=[len(obs)])
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         return actor(td)["action"].numpy()
+
+
+def samples(obs: np.ndarray, actions: np.ndarray, count: int = CARD_SAMPLES) -> list[dict]:
+    """``count`` observations spread evenly over ``obs`` (first and last included) with their
+    ``actions``, as the exact float32 values."""
+    rows = np.unique(np.linspace(0, len(obs) - 1, count).round().astype(int))
+    return [{"observation": obs[i].tolist(), "action": actions[i].tolist()} for i in rows]
 
 
 def max_differences(actions: dict[str, np.ndarray]) -> dict[str, float]:
@@ -482,6 +492,7 @@ def export_run(
                              "scenario_digest_matches": same_set},
             "max_abs_action_difference": diffs,
             "tolerance": tolerance,
+            "samples": samples(x, actions["torch"]),
         },
         "timing": timing,
         "machine": machine,
