@@ -454,6 +454,43 @@ def test_a_simulator_whose_continue_answers_before_its_time_has_run_is_waited_fo
         env.close()
 
 
+class _ReadBeforeItRan:
+    """A client whose simContinueForTime answered at once and whose simulator was read before
+    it ran (the drones as before the step, with a contact whose flag that read clears), then
+    paused again before simIsPaused was asked."""
+
+    def __init__(self, client):
+        self._client, self._last, self._stale = client, None, False
+
+    def __getattr__(self, name):
+        return getattr(self._client, name)
+
+    def continue_for(self, seconds, what):
+        self._client.continue_for(seconds, what)
+        self._stale = True
+
+    def wait_paused(self, what):
+        return False  # paused again when asked: it never saw the simulation run
+
+    def read(self, names, what):
+        if self._stale:
+            self._stale = False
+            return self._last[0], [True] + [False] * (len(names) - 1)
+        self._last = self._client.read(names, what)
+        return self._last
+
+
+def test_a_read_before_the_simulator_ran_is_read_again_and_keeps_its_collision(scenarios):
+    with TestServer(SETTINGS) as srv:
+        env = airsim_env(scenarios, srv.address)
+        env.dynamics.client = _ReadBeforeItRan(env.dynamics.client)
+        td = env.rand_step(env.reset())
+        assert env.dynamics.last_advance_s == pytest.approx(PERIOD, abs=1e-9)
+        assert env.dynamics.collided.tolist() == [[True, False]]  # the first read's contact
+        assert not torch.equal(td["next", "positions"], td["positions"])
+        env.close()
+
+
 def test_a_simulator_without_the_checking_calls_flies_with_a_warning(scenarios, caplog):
     # listVehicles and simIsPaused only check; a simulator that lacks them still flies.
     with TestServer(SETTINGS) as srv:
@@ -480,6 +517,14 @@ def test_no_simulator_at_the_address_names_it_and_how_to_start_one(scenarios):
     assert time.monotonic() - t0 < 2.0 + 1.0  # connect_timeout_s, and then some
     assert f"no simulator at 127.0.0.1:{port}" in message and "\n" not in message
     assert "settings.json" in message and "python -m rlplat.airsim serve" in message
+    # A host name that does not resolve (.invalid never does) says so, at once.
+    t0 = time.monotonic()
+    with pytest.raises(AirSimError) as info:
+        AirSimClient("no-such-host.invalid:41451", connect_timeout_s=5.0)
+    assert time.monotonic() - t0 < 1.0
+    assert str(info.value).startswith(
+        "no simulator at no-such-host.invalid:41451: the host name does not resolve ("
+    )
 
 
 def test_a_simulator_that_accepts_but_never_answers_fails_within_the_connect_timeout(

@@ -28,6 +28,7 @@ import contextlib
 import json
 import logging
 import math
+import socket
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -414,6 +415,13 @@ class AirSimClient:
                 "dynamics=airsim needs the cosysairsim client library: pip install -e .[airsim]"
             ) from None
         self._lib = cosysairsim
+        try:  # the library's connect would swallow this and wait out the timeout
+            socket.getaddrinfo(self.host, self.port, type=socket.SOCK_STREAM)
+        except (socket.gaierror, UnicodeError) as e:
+            raise AirSimError(
+                f"no simulator at {self.address}: the host name does not resolve "
+                f"({getattr(e, 'strerror', None) or e}); {START_HINT}"
+            ) from None
         _ensure_event_loop()
         api = cosysairsim.MultirotorClient.__new__(cosysairsim.MultirotorClient)
         api.client = _session_types()(self.host, self.port)

@@ -185,10 +185,20 @@ class AirSimDynamics(DroneDynamics):
         self.client.continue_for(period / self.clock_speed, f"a step of {period:g} s")
         before, what = self._timestamp_ns, f"the drones after a step of {period:g} s"
         self._timestamp_ns = self._read(what)
-        short = (self._timestamp_ns - before) / 1e9 < period - self.step_tolerance_s
-        if short and self.client.wait_paused(what):  # it answered before its time had run
-            self._timestamp_ns = self._read(what)
+        if (self._timestamp_ns - before) / 1e9 < period - self.step_tolerance_s:
+            self._read_again(what)
         self._check_time(before, self._timestamp_ns, period)
+
+    def _read_again(self, what: str) -> None:
+        """After a read short of the period: a simulator whose ``simContinueForTime`` answers
+        before its time has run (older AirSim) may have been read before it ran, and may be
+        paused again by the time ``simIsPaused`` is asked. Wait for the pause (where the
+        simulator tells) and read again; a collision either read reports counts (the
+        simulator clears the flag it reports)."""
+        self.client.wait_paused(what)
+        hits = self.collided
+        self._timestamp_ns = self._read(what)
+        self.collided = hits | self.collided
 
     def _reset_internal(self, mask: Tensor) -> None:
         """Reset the simulation (every drone at rest), pause it, take control of the drones
