@@ -231,7 +231,7 @@ def bin_keys(d: dict) -> dict:
     return {k.encode(): bin_keys(v) if isinstance(v, dict) else v for k, v in d.items()}
 
 
-def test_integers_bin_strings_and_integer_keys_are_read_and_error_texts_are_one_line():
+def test_integers_bin_strings_and_integer_keys_are_read_and_error_texts_are_one_line(caplog):
     def reply(msgid, method, params):
         answers = {
             "ping": [1, msgid, None, True],
@@ -248,11 +248,9 @@ def test_integers_bin_strings_and_integer_keys_are_read_and_error_texts_are_one_
     states, hits = client.read(["Attacker"], "the test")
     assert states[0].position == (1.0, 2.5, -3.0) and states[0].timestamp_ns == 123_000_000
     assert hits == [False]
-    with pytest.raises(AirSimError) as info:
-        client.settings()
-    assert str(info.value).endswith(
-        "refused getSettingsString (its settings): first line second line"
-    )
+    with caplog.at_level("WARNING", logger="rlplat.envs.airsim.client"):
+        assert client.settings() == {}  # a call that only checks: refused, it checks nothing
+    assert "has no getSettingsString (it answered: first line second line)" in caplog.text
     client.close()
     sim.close()
 
@@ -502,6 +500,27 @@ def test_a_simulator_without_the_checking_calls_flies_with_a_warning(scenarios, 
         assert env.dynamics.last_advance_s == pytest.approx(PERIOD, abs=1e-9)
         assert "has no listVehicles: vehicles Attacker, Defender not checked" in caplog.text
         assert caplog.text.count("has no simIsPaused") == 1
+        env.close()
+
+
+def test_a_checking_call_refused_in_other_words_than_rpclibs_flies_with_a_warning(
+    scenarios, caplog
+):
+    # A stand-in that words a missing method its own way: the checks are skipped, not fatal.
+    def missing():
+        raise ValueError("Method not found")
+
+    with TestServer(SETTINGS) as srv:
+        for name in ("listVehicles", "getSettingsString", "simIsPaused"):
+            srv._methods[name] = ((), missing)
+        with caplog.at_level("WARNING", logger="rlplat.envs.airsim.client"):
+            env = airsim_env(scenarios, srv.address)
+            env.reset()
+            env.rand_step()
+        assert env.dynamics.last_advance_s == pytest.approx(PERIOD, abs=1e-9)
+        for name in ("listVehicles", "getSettingsString", "simIsPaused"):
+            assert f"has no {name} (it answered: " in caplog.text
+        assert "Method not found" in caplog.text
         env.close()
 
 

@@ -56,6 +56,12 @@ class AirSimError(RlplatError):
     the message names the address and what was being waited for."""
 
 
+class AirSimRefused(AirSimError):
+    """The simulator answered a call with an error (rather than not answering): for a call
+    that only checks (``listVehicles``, ``getSettingsString``, ``simIsPaused``), a simulator
+    without it, whatever its words."""
+
+
 @dataclass(frozen=True)
 class VehicleState:
     """What one ``getMultirotorState`` read gives a lock-step loop (NED, the vehicle's own
@@ -184,6 +190,13 @@ def _no_connection(reason: Any) -> bool:
     if isinstance(reason, (_Lost, TransportError, OSError)):
         return True
     return isinstance(reason, str) and reason in _LIBRARY_LOSSES
+
+
+def _words(refusal: AirSimError) -> str:
+    """Nothing for rpclib's words for a missing method; otherwise the simulator's, in
+    parentheses (a call that checks and that it refused in other words)."""
+    text = str(refusal)
+    return "" if NO_FUNCTION in text else f" (it answered: {text.split('): ', 1)[-1]})"
 
 
 def _retrieved(task) -> None:
@@ -484,7 +497,7 @@ class AirSimClient:
                     f"lost the connection to the simulator at {self.address} while waiting for "
                     f"{method} ({what}); restart it and resume the run"
                 ) from None
-            raise AirSimError(
+            raise AirSimRefused(
                 f"simulator at {self.address} refused {method} ({what}): {one_line(reason)}"
             ) from None
 
@@ -534,11 +547,9 @@ class AirSimClient:
         not among them."""
         try:
             have = self.vehicles()
-        except AirSimError as e:
-            if NO_FUNCTION not in str(e):
-                raise
-            log.warning("simulator at %s has no listVehicles: vehicles %s not checked",
-                        self.address, ", ".join(names))  # fmt: skip
+        except AirSimRefused as e:
+            log.warning("simulator at %s has no listVehicles%s: vehicles %s not checked",
+                        self.address, _words(e), ", ".join(names))  # fmt: skip
             return
         missing = [n for n in names if n not in have]
         if missing:
@@ -552,11 +563,10 @@ class AirSimClient:
         """The simulator's settings.json (``getSettingsString``), {} if it gives none."""
         try:
             text = self.call("getSettingsString", "its settings", self._api.getSettingsString)
-        except AirSimError as e:
-            if NO_FUNCTION not in str(e):
-                raise
-            log.warning("simulator at %s has no getSettingsString: its settings are not checked "
-                        "(dynamics.spawn places the vehicles)", self.address)  # fmt: skip
+        except AirSimRefused as e:
+            log.warning("simulator at %s has no getSettingsString%s: its settings are not "
+                        "checked (dynamics.spawn places the vehicles)",
+                        self.address, _words(e))  # fmt: skip
             return {}
         try:
             parsed = json.loads(text) if text else {}
@@ -631,11 +641,10 @@ class AirSimClient:
             return None
         try:
             return bool(self.call("simIsPaused", what, self._api.simIsPause))
-        except AirSimError as e:
-            if NO_FUNCTION not in str(e):
-                raise
+        except AirSimRefused as e:
             self._no_is_paused = True
-            log.warning("simulator at %s has no simIsPaused: pauses are not checked", self.address)
+            log.warning("simulator at %s has no simIsPaused%s: pauses are not checked",
+                        self.address, _words(e))  # fmt: skip
             return None
 
     def wait_paused(self, what: str) -> bool:
