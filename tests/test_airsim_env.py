@@ -536,6 +536,8 @@ def test_no_simulator_at_the_address_names_it_and_how_to_start_one(scenarios):
     assert time.monotonic() - t0 < 2.0 + 1.0  # connect_timeout_s, and then some
     assert f"no simulator at 127.0.0.1:{port}" in message and "\n" not in message
     assert "settings.json" in message and "python -m rlplat.airsim serve" in message
+    with pytest.raises(AirSimError, match=rf"^no simulator at \[::1\]:{port}\b"):
+        AirSimClient(f"[::1]:{port}", connect_timeout_s=2.0)  # IPv6, named in brackets
     # A host name that does not resolve (.invalid never does) says so, at once.
     t0 = time.monotonic()
     with pytest.raises(AirSimError) as info:

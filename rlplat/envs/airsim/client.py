@@ -416,7 +416,8 @@ class AirSimClient:
         self, address: str, *, connect_timeout_s: float = 10.0, timeout_s: float = 10.0
     ) -> None:
         self.host, self.port = parse_endpoint(address)
-        self.address = f"{self.host}:{self.port}"
+        host = f"[{self.host}]" if ":" in self.host else self.host  # IPv6 in brackets
+        self.address = f"{host}:{self.port}"
         self.connect_timeout_s, self.timeout_s = float(connect_timeout_s), float(timeout_s)
         self._api, self._field = None, "dynamics.timeout_s"
         self._moves: dict[str, Any] = {}  # the last move sent to each vehicle
