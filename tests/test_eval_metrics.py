@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from rlplat.eval.metrics import (
+    Z95,
     iqm,
     outcome_stats,
     speed_ratio_bin,
@@ -26,6 +27,12 @@ from rlplat.eval.report import pick_episodes
 )
 def test_wilson_interval_known_values(k, n, expected):
     assert wilson_interval(k, n) == pytest.approx(expected, abs=1e-4)
+
+
+def test_the_written_out_normal_quantile_is_scipys():
+    from scipy import stats
+
+    assert float(stats.norm.ppf(0.975)) == Z95
 
 
 def test_wilson_interval_edges():

@@ -39,7 +39,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 from rlplat.agents.policies import POLICIES
 from rlplat.cli import exit_on_error
@@ -324,6 +323,8 @@ def _over_runs(gains: list[float]) -> dict[str, Any]:
     more)."""
     if len(gains) < 2:
         return {}
+    from scipy import stats  # on first use: scipy takes a second to import
+
     g = np.asarray(gains)
     sd = float(g.std(ddof=1))
     half = float(stats.t.ppf(0.975, g.size - 1)) * sd / np.sqrt(g.size)

@@ -7,7 +7,6 @@ from itertools import combinations
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 from rlplat.scenarios.generator import SplitColumns, grid_keys
 from rlplat.scenarios.spec import STRATEGIES, ScenarioSpec
@@ -74,6 +73,8 @@ def _completeness(spec: ScenarioSpec, splits: dict[str, SplitColumns]) -> dict[s
 
 
 def _ks(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
+    from scipy import stats  # on first use: scipy takes a second to import
+
     r = stats.ks_2samp(a, b)
     return {"statistic": round(float(r.statistic), 6), "pvalue": round(float(r.pvalue), 6)}
 
@@ -83,6 +84,8 @@ def _chi2(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
     table = np.array([[np.sum(x == v) for v in levels] for x in (a, b)])
     if len(levels) < 2:  # a single level: the splits agree trivially
         return {"statistic": 0.0, "pvalue": 1.0}
+    from scipy import stats
+
     r = stats.chi2_contingency(table, correction=False)
     return {"statistic": round(float(r.statistic), 6), "pvalue": round(float(r.pvalue), 6)}
 
