@@ -248,6 +248,41 @@ def _run_python(*args: str, timeout: float = 300) -> subprocess.CompletedProcess
     )
 
 
+@pytest.fixture
+def refused_in_process(monkeypatch, capsys):
+    """refused_in_process(tool, *args, cwd=ROOT) -> stderr: ``python tool *args`` (a script in
+    the repository root, or ``-m`` and a module) run in this process, for a command line the
+    tool refuses before Hydra starts: it must exit with code 2 there (a command that gets
+    further fails the test). The same code as in a process of its own, without the seconds
+    of a new process's imports; a test per tool runs one refusal as a process."""
+    import runpy
+
+    import hydra
+
+    def started(*args, **kwargs):
+        raise AssertionError("the command line was not refused before Hydra started")
+
+    def hydra_main(*args, **kwargs):  # the entry point, made at import, may not start
+        return lambda fn: started
+
+    def run(tool: str, *args: str, cwd: Path = ROOT) -> str:
+        module = args[0] if tool == "-m" else None
+        argv = list(args[1:] if module else args)
+        monkeypatch.chdir(cwd)
+        monkeypatch.setattr(sys, "argv", [module or str(ROOT / tool), *argv])
+        monkeypatch.setattr(hydra, "main", hydra_main)
+        with pytest.raises(SystemExit) as exit_:
+            if module:
+                sys.modules.pop(module + ".__main__", None)
+                runpy.run_module(module, run_name="__main__", alter_sys=False)
+            else:
+                runpy.run_path(str(ROOT / tool), run_name="__main__")
+        assert exit_.value.code == 2, exit_.value.code
+        return capsys.readouterr().err
+
+    return run
+
+
 @pytest.fixture(scope="session")
 def run_python():
     """run_python(*args, timeout=300): ``python *args`` in the repository root, output captured;

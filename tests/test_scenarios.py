@@ -297,17 +297,25 @@ def test_cli_writes_a_loadable_set_and_prints_the_report(tmp_path):
     ("args", "message"),
     [
         (("scenario.n_train=-1",), "error: scenario.n_train: count must be >= 0, got -1"),
-        (("scenario.min_altitude=50",), "error: scenario: only 0 distinct scenarios"),
         (("scenario.n_train=${nope}",), "error: scenario.n_train: Interpolation key 'nope' not"),
         (("scenario.n_trian=5",), "error: scenario.n_trian: no such setting (did you mean "),
         (("scenario=nope",), "error: scenario=nope: no such option (valid: pursuit, pursuit_2v1)"),
     ],
 )
-def test_cli_bad_input_exits_nonzero_and_writes_nothing(tmp_path, args, message):
-    r = _cli("out_dir=set", *args, cwd=tmp_path)
-    assert r.returncode == 2
-    assert r.stderr.strip().startswith(message) and len(r.stderr.strip().splitlines()) == 1
+def test_cli_bad_input_exits_nonzero_and_writes_nothing(
+    tmp_path, args, message, refused_in_process
+):
+    stderr = refused_in_process("-m", "rlplat.scenarios", "out_dir=set", *args, cwd=tmp_path)
+    assert stderr.strip().startswith(message) and len(stderr.strip().splitlines()) == 1
     assert list(tmp_path.iterdir()) == []
+
+
+def test_cli_a_set_that_cannot_be_drawn_exits_nonzero_and_writes_nothing(tmp_path):
+    # Refused as the job draws it (after Hydra started), in a process of its own.
+    r = _cli("out_dir=set", "scenario.min_altitude=50", cwd=tmp_path)
+    assert r.returncode == 2
+    assert r.stderr.startswith("error: scenario: only 0 distinct scenarios")
+    assert len(r.stderr.strip().splitlines()) == 1 and list(tmp_path.iterdir()) == []
 
 
 def test_cli_without_an_out_dir_is_one_line(tmp_path):

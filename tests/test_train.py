@@ -1,4 +1,5 @@
 import csv
+import functools
 import json
 import logging
 import shutil
@@ -429,13 +430,14 @@ def test_bad_algo_values_are_refused_before_any_work(
     ],
 )
 def test_cli_bad_input_is_one_line_before_any_work(
-    scenarios, tmp_path, args, message, tiny, train_cli
+    scenarios, tmp_path, args, message, tiny, refused_in_process
 ):
     run = tmp_path / "run"
-    res = train_cli(*tiny, f"scenarios_dir={scenarios.path}", f"hydra.run.dir={run}", *args)
-    assert res.returncode == 2
-    assert res.stderr.strip().splitlines()[-1].startswith(message)
-    assert not (run / "checkpoints").exists()
+    stderr = refused_in_process(
+        "train.py", *tiny, f"scenarios_dir={scenarios.path}", f"hydra.run.dir={run}", *args
+    )
+    assert stderr.strip().splitlines()[-1].startswith(message)
+    assert not run.exists()
 
 
 def test_a_budget_under_the_scripted_start_is_the_budget(scenarios, tmp_path, tiny_run, caplog):
@@ -451,10 +453,11 @@ def test_a_budget_under_the_scripted_start_is_the_budget(scenarios, tmp_path, ti
 
 @pytest.mark.parametrize("empty", ["train", "val", "test"])
 def test_a_set_with_an_empty_split_is_refused_before_any_work(
-    tmp_path, write_small_set, empty, tiny, train_cli
+    tmp_path, write_small_set, empty, tiny, refused_in_process
 ):
     # A test-only set is a set (an evaluation flies it); training needs all three splits.
     held = write_small_set(tmp_path / "set", f"scenario.n_{empty}=0")
+    train_cli = functools.partial(refused_in_process, "train.py")
     refusal = refused_before_any_work(train_cli, tmp_path / "run", *tiny,
                                       f"scenarios_dir={held.path}")  # fmt: skip
     assert refusal == (
@@ -464,17 +467,22 @@ def test_a_set_with_an_empty_split_is_refused_before_any_work(
 
 
 def refused_before_any_work(train_cli, run, *args: str) -> str:
-    """``train.py *args`` into ``run``: refused (exit code 2) before Hydra made ``run``; the
-    last line of its stderr."""
+    """``train.py *args`` into ``run`` (through ``train_cli``, or ``refused_in_process``):
+    refused (exit code 2) before Hydra made ``run``; the last line of its stderr."""
     res = train_cli(*args, f"hydra.run.dir={run}")
-    assert res.returncode == 2, res.stderr[-2000:]
+    if isinstance(res, str):  # refused_in_process: exit code 2 is its own check
+        stderr = res
+    else:
+        assert res.returncode == 2, res.stderr[-2000:]
+        stderr = res.stderr
     assert not run.exists()
-    return res.stderr.strip().splitlines()[-1]
+    return stderr.strip().splitlines()[-1]
 
 
 def test_a_scenarios_dir_the_run_cannot_fly_is_one_line_before_any_work(
-    tmp_path, scenarios, tiny, train_cli
+    tmp_path, scenarios, tiny, refused_in_process
 ):
+    train_cli = functools.partial(refused_in_process, "train.py")
     run = tmp_path / "run"
     nowhere = tmp_path / "nowhere"
     assert refused_before_any_work(train_cli, run, *tiny, f"scenarios_dir={nowhere}") == (
@@ -516,7 +524,9 @@ def test_what_train_would_refuse_later_is_refused_before_any_work(
     assert not run.exists()
 
 
-def test_a_run_directory_holds_one_run(tmp_path, scenarios, tiny, tiny_run, train_cli, caplog):
+def test_a_run_directory_holds_one_run(
+    tmp_path, scenarios, tiny, tiny_run, train_cli, refused_in_process, caplog
+):
     run = tmp_path / "run"
     first = tiny_run(scenarios, run)
     metrics = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()}
@@ -527,19 +537,20 @@ def test_a_run_directory_holds_one_run(tmp_path, scenarios, tiny, tiny_run, trai
         f"error: hydra.run.dir: {run} holds a run already; resume=true continues it, another "
         "directory starts a new one\n"
     )
-    res = train_cli(*tiny, "resume=true", "reward=sparse")  # a resume of another config
-    assert res.returncode == 2 and res.stderr.startswith("error: resume: the config differs")
+    refused = functools.partial(refused_in_process, "train.py")
+    stderr = refused(*tiny, "resume=true", "reward=sparse")  # a resume of another config
+    assert stderr.startswith("error: resume: the config differs")
     assert {p: p.read_bytes() for p in run.rglob("*") if p.is_file()} == metrics  # untouched
-    assert refused_before_any_work(train_cli, tmp_path / "new", *tiny[:-1], "resume=true") == (
+    assert refused_before_any_work(refused, tmp_path / "new", *tiny[:-1], "resume=true") == (
         f"error: resume: true, and hydra.run.dir={tmp_path / 'new'} holds no run to continue "
         "(no last.pt)"
     )
     # A sweep into a directory whose job 1 holds a run starts no job.
     sweep = tmp_path / "sweep"
     tiny_run(scenarios, sweep / "1")
-    res = train_cli("-m", *tiny[:-1], "seed=0,1", f"hydra.sweep.dir={sweep}")
-    assert res.returncode == 2 and not (sweep / "0").exists()
-    assert res.stderr.startswith(f"error: hydra.sweep.dir: {sweep / '1'} holds a run already")
+    stderr = refused("-m", *tiny[:-1], "seed=0,1", f"hydra.sweep.dir={sweep}")
+    assert not (sweep / "0").exists()
+    assert stderr.startswith(f"error: hydra.sweep.dir: {sweep / '1'} holds a run already")
     # A resume whose budget the run has spent trains nothing, and says so.
     with caplog.at_level("WARNING", logger="rlplat.experiment.training"):
         again = tiny_run(scenarios, run, "resume=true", "train.total_frames=128")
