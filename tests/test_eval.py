@@ -312,6 +312,16 @@ def test_compare_mode_writes_under_out_dir_and_leaves_the_run_alone(
     assert res.returncode == 0, res.stderr[-2000:]
     assert res.stdout.strip() == lines[4].strip()
     assert (out / "compare-val.md").read_text() == table
+    # Evaluations binned otherwise do not line up in the tables per bin: one line.
+    from rlplat.eval.compare import load_summaries
+
+    other = tmp_path / "binned-otherwise"
+    shutil.copytree(out, other)
+    path = other / "val-pure_pursuit" / "summary.json"
+    path.write_text(json.dumps({**json.loads(path.read_text()), "speed_ratio_bins": [1.0]}))
+    with pytest.raises(ConfigError, match=r"^compare: the evaluations bin speed ratios "
+                       r"differently \(.*pure_pursuit: \[1.0\]"):  # fmt: skip
+        load_summaries(trained_run, "val", eval_dir=other)
 
 
 def test_last_checkpoint_and_a_path(trained_run):

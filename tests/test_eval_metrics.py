@@ -7,6 +7,7 @@ from rlplat.eval.metrics import (
     Z95,
     iqm,
     outcome_stats,
+    speed_ratio,
     speed_ratio_bin,
     speed_ratio_labels,
     stratified_bootstrap_ci,
@@ -78,6 +79,10 @@ def test_speed_ratio_bins_and_labels():
     edges = (0.5, 0.8, 1.0, 1.25, 2.0)
     assert speed_ratio_bin([0.4, 0.5, 0.99, 1.0, 3.0], edges).tolist() == [0, 1, 2, 3, 5]
     assert speed_ratio_labels(edges) == ["<0.5", "0.5-0.8", "0.8-1", "1-1.25", "1.25-2", ">=2"]
+    # Speeds fly as float32: 1.5 / 1.2 is 1.25 as written, on the edge, so in the bin above.
+    a, d = (float(np.float32(v)) for v in (1.5, 1.2))
+    assert a / d < 1.25 and speed_ratio(a, d) == 1.25
+    assert speed_ratio_bin([speed_ratio(a, d)], edges).tolist() == [4]
 
 
 def test_outcome_stats_average_time_over_captures_only():

@@ -278,6 +278,12 @@ def test_a_downed_attacker_holds_and_its_team_mate_flies_on(team_sets):
     assert (reward[..., 0][on_ground] == 0).all()
     crash = env.reward_fn.weights["ground_contact"]
     assert (reward[..., 0][fell] - reward[..., 1][fell] < 0.5 * crash).all()
+    # Evaluated: an episode the mate flies on to its end is no crash, caught or not, and a
+    # defender it does not catch evades by the route it flew.
+    flown = evaluate(env, dive_first)
+    assert not flown.grounded.any() and not flown.captured.all()
+    missed = ~flown.captured
+    assert torch.equal(flown.evasion[missed], flown.route_fraction[missed])
 
     # Both attackers diving: the episode ends (terminated) when the second one lands.
     def dive_both(td):
@@ -293,6 +299,8 @@ def test_a_downed_attacker_holds_and_its_team_mate_flies_on(team_sets):
     ends = down.all(-1) | nxt["captured"].squeeze(-1)
     assert torch.equal(nxt["terminated"].squeeze(-1)[first], ends[first])
     assert (down.any(-1) & ~down.all(-1) & first).any(), "one attacker should land first"
+    flown = evaluate(env, dive_both)  # every attacker down: a crash, unless caught before
+    assert torch.equal(flown.grounded, ~flown.captured) and flown.grounded.any()
 
 
 def test_team_transitions_are_one_row_per_drone():

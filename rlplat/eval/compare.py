@@ -81,6 +81,13 @@ def load_summaries(
     if len(digests) > 1:
         flown = ", ".join(f"{s['name']}: {s['scenario_digest'][:12]}" for s in summaries)
         raise ConfigError(f"compare: the evaluations used different scenario sets ({flown})")
+    edges = {tuple(s.get("speed_ratio_bins", ())) for s in summaries}
+    if len(edges) > 1:  # the tables per bin line them up
+        binned = ", ".join(f"{s['name']}: {s.get('speed_ratio_bins')}" for s in summaries)
+        raise ConfigError(
+            f"compare: the evaluations bin speed ratios differently ({binned}); evaluate them "
+            "with the same speed_ratio_bins"
+        )
     return summaries
 
 

@@ -149,7 +149,7 @@ def evaluate(
 
 def _fly(env: PursuitEnv, policy, deterministic: bool, record: bool) -> dict:
     """One wave: reset every env, fly until each one's episode ends; per-env tallies (CPU)."""
-    n = env.batch_size[0]
+    n, attackers = env.batch_size[0], env.num_attackers
     kind = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
     td = env.reset()
     index = td["scenario_index"].squeeze(-1).clone()
@@ -183,8 +183,11 @@ def _fly(env: PursuitEnv, policy, deterministic: bool, record: bool) -> dict:
                 positions.append(torch.where(keep, nxt["positions"], positions[-1]))
             done = nxt["done"].squeeze(-1) & alive
             captured |= done & nxt["captured"].squeeze(-1)
-            low = (nxt["positions"][..., 2] <= env.ground_altitude).any(-1)
-            grounded |= done & low & ~nxt["captured"].squeeze(-1)
+            # A crash ends the episode as the env ends one: a defender on the ground, or every
+            # attacker (the first drones); a team's downed attacker alone is no crash.
+            low = nxt["positions"][..., 2] <= env.ground_altitude
+            crashed = low[:, :attackers].all(-1) | low[:, attackers:].any(-1)
+            grounded |= done & crashed & ~nxt["captured"].squeeze(-1)
             alive &= ~done
             td = nxt.exclude("reward", "done", "terminated", "truncated")
     out = {

@@ -86,6 +86,13 @@ def speed_ratio_labels(edges: Sequence[float]) -> list[str]:
     return [f"<{e[0]}", *[f"{a}-{b}" for a, b in zip(e[:-1], e[1:], strict=True)], f">={e[-1]}"]
 
 
+def speed_ratio(attacker: float, defender: float) -> float:
+    """``attacker / defender`` maximum speed, rounded to 6 decimals: the speeds fly as float32,
+    whose quotient misses the ratio of the speeds as written by a few 1e-8 (1.5 / 1.2 gives
+    1.24999995), which would put a ratio on a bin's edge into the bin below."""
+    return round(attacker / defender, 6)
+
+
 def speed_ratio_bin(ratio: np.ndarray, edges: Sequence[float]) -> np.ndarray:
     """Bin index (E,) of each speed ratio for the sorted inner ``edges``; a ratio on an edge
     goes to the bin above it."""

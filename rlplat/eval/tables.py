@@ -13,7 +13,13 @@ import numpy as np
 import torch
 
 from rlplat.eval.episodes import EpisodeResults
-from rlplat.eval.metrics import breakdown, outcome_stats, speed_ratio_bin, speed_ratio_labels
+from rlplat.eval.metrics import (
+    breakdown,
+    outcome_stats,
+    speed_ratio,
+    speed_ratio_bin,
+    speed_ratio_labels,
+)
 from rlplat.io import atomic_write_text
 from rlplat.scenarios import STRATEGIES, ScenarioSet
 
@@ -71,7 +77,7 @@ def episode_rows(
         flown = len(v_a) if attackers is None else attackers
         extra: dict[str, Any] = {}
         if flown > 1:
-            extra["team_speed_ratio"] = max(v_a[:flown]) / v_d[0]
+            extra["team_speed_ratio"] = speed_ratio(max(v_a[:flown]), v_d[0])
         for a in range(1, flown):
             extra.update(_xyz(f"attacker{a}_start", starts_a[a]))
             extra[f"attacker{a}_max_speed"] = v_a[a]
@@ -93,7 +99,7 @@ def episode_rows(
             **_xyz("attacker_start", starts_a[0]),
             "defender_max_speed": v_d[0],
             "attacker_max_speed": v_a[0],
-            "speed_ratio": v_a[0] / v_d[0],
+            "speed_ratio": speed_ratio(v_a[0], v_d[0]),
             **extra,
             **({} if bound is None else {"interceptable": bound[e]}),
             **({} if route_bound is None else {"route_interceptable": route_bound[e]}),
