@@ -71,3 +71,23 @@ def test_a_job_that_did_not_finish_is_named_not_dropped_silently(tmp_path, caplo
     assert f"1 job(s) of {tmp_path} did not finish (no summary.json) and are left out: 1" in (
         caplog.text
     )
+
+
+def test_a_summary_that_is_not_one_and_a_bad_seed_are_one_line(tmp_path):
+    from rlplat.eval.aggregate import aggregate
+
+    fake_sweep(tmp_path, {"default": [(0, 0.2, -50.0), (1, 0.4, -40.0)]})
+    with pytest.raises(ConfigError, match=r"^seed: must be an integer >= 0, got -1$"):
+        aggregate(tmp_path, seed=-1)
+    path = tmp_path / "1" / "summary.json"
+    for text, error in (
+        ("{not json", r"cannot be read as JSON \("),
+        ('{"seed": 1, "test_capture_rate": null, "test_mean_return": 1}',
+         r"test_capture_rate is None, not a finite number"),
+        ('{"seed": 1, "test_capture_rate": NaN, "test_mean_return": 1}',
+         r"test_capture_rate is nan, not a finite number"),
+    ):  # fmt: skip
+        path.write_text(text)
+        with pytest.raises(ConfigError, match=rf"^{path}: {error}"):
+            aggregate(tmp_path)
+    assert not (tmp_path / "aggregate").exists()  # nothing written

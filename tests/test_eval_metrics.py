@@ -327,6 +327,8 @@ def test_pool_reads_evaluation_directories_as_it_reads_runs(tmp_path, capsys):
         *sorted((tmp_path / "s1" / "eval").iterdir()),
     ]
     assert pooled_rows(evaluations) == pooled_rows(runs)
+    # An evaluation named twice (itself and its run) counts once.
+    assert pooled_rows([*runs, evaluations[0], tmp_path / "s0" / ".." / "s0"]) == pooled_rows(runs)
     (row,) = paired_rows(evaluations, "proportional_navigation")
     assert row == paired_rows(runs, "proportional_navigation")[0] and row["runs"] == 2
     with pytest.raises(ConfigError, match="evaluates the test split, not val; pass --split test"):

@@ -13,6 +13,7 @@ import csv
 import io
 import json
 import logging
+import math
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
@@ -75,10 +76,19 @@ def collect(sweep_dir: str | Path) -> tuple[dict[str, list[dict[str, Any]]], lis
     common = [o for o in found[runs[0]] if all(o in v for v in found.values())]
     groups: dict[str, list[dict[str, Any]]] = defaultdict(list)
     for run in runs:
-        summary = json.loads((run / "summary.json").read_text())
+        path = run / "summary.json"
+        try:
+            summary = json.loads(path.read_text())
+        except (OSError, ValueError) as e:
+            reason = " ".join(str(e).split())
+            raise ConfigError(f"{path}: cannot be read as JSON ({reason})") from None
         missing = [k for k in ("seed", *METRICS) if k not in summary]
         if missing:
-            raise ConfigError(f"{run / 'summary.json'}: missing {', '.join(missing)}")
+            raise ConfigError(f"{path}: missing {', '.join(missing)}")
+        for key in METRICS:
+            value = summary[key]
+            if not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ConfigError(f"{path}: {key} is {value!r}, not a finite number")
         record = {"seed": summary["seed"], "run_dir": str(run.relative_to(sweep_dir))}
         name = " ".join(o for o in found[run] if o not in common) or "default"
         groups[name].append(record | {k: float(summary[k]) for k in METRICS})
@@ -140,6 +150,8 @@ def aggregate(sweep_dir: str | Path, reps: int = 2000, seed: int = 0) -> str:
     """Aggregate the seeds of a sweep into ``<sweep_dir>/aggregate/``; returns the Markdown."""
     if not isinstance(reps, int) or reps < 1:
         raise ConfigError(f"reps: must be a positive integer, got {reps}")
+    if not isinstance(seed, int) or seed < 0:
+        raise ConfigError(f"seed: must be an integer >= 0, got {seed}")
     sweep_dir = Path(sweep_dir)
     groups, common = collect(sweep_dir)
     stats = {name: aggregate_scores(records, reps, seed) for name, records in groups.items()}

@@ -34,6 +34,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import logging
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
@@ -51,6 +52,8 @@ from rlplat.scenarios import SPLITS
 #: Each episode row carries ``RUN``: the folder of the evaluation it comes from.
 Evaluations = tuple[dict[str, list[dict[str, str]]], dict[str, int], list[dict[str, Any]]]
 RUN = "_run"  # not a column of episodes.csv
+
+log = logging.getLogger(__name__)
 
 
 def pooled_rows(run_dirs: list[Path], split: str = "test") -> list[dict[str, Any]]:
@@ -72,8 +75,14 @@ def _read(run_dirs: list[Path], split: str) -> Evaluations:
     runs: dict[str, int] = defaultdict(int)
     learned: dict[str, bool] = {}
     summaries: list[dict[str, Any]] = []
+    seen: set[Path] = set()
     for run_dir in run_dirs:
         for path in _evaluations(Path(run_dir), split):
+            if path.resolve() in seen:  # named twice (a run and one of its evaluations, ...)
+                log.warning("pool: %s is named more than once; its episodes count once",
+                            path.parent)  # fmt: skip
+                continue
+            seen.add(path.resolve())
             summary = json.loads(path.read_text())
             flown = summary.get("split", split)  # a run's eval/<split>-* are of it by name
             if flown != split:
