@@ -42,13 +42,19 @@ def sha256_bytes(data: bytes) -> str:
 
 def check_writable_dir(path: str | os.PathLike, field: str) -> Path:
     """``path`` as a folder files can be written to, or made in: itself or its nearest
-    existing parent must be a folder this process may write. Makes nothing; a one-line
-    :class:`ConfigError` naming ``field`` otherwise (before any work, not after it)."""
+    existing parent must be a folder this process can write a file in (it makes one and removes
+    it). Makes nothing else; a one-line :class:`ConfigError` naming ``field`` otherwise
+    (before any work, not after it)."""
     path = Path(path)
     existing = next(p for p in (path, *path.parents) if p.exists() or p == p.parent)
     if not existing.is_dir():
         what = "is a file" if existing == path else f"{existing} is a file"
         raise ConfigError(f"{field}: cannot write to {path}: {what}")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise ConfigError(f"{field}: cannot write to {path}: {existing} is not writable")
+    try:  # a file made and removed at once: what the permission bits do not say (/proc)
+        with tempfile.NamedTemporaryFile(dir=existing, prefix=".rlplat-probe-"):
+            pass
+    except OSError as e:
+        raise ConfigError(
+            f"{field}: cannot write to {path}: {existing} is not writable ({e.strerror})"
+        ) from None
     return path

@@ -618,3 +618,13 @@ def test_a_defender_run_exports_and_flies_the_evaluation(tmp_path, write_set, sh
         ev = evaluate_run(run, policy=policy, plots=False)
         assert ev.summary["learner"] == "defender", policy
         assert ev.summary["outcomes_differing_from_torch"] == 0, policy
+
+
+def test_a_folder_is_checked_by_writing_in_it_not_by_its_permission_bits(tmp_path):
+    from rlplat.io import check_writable_dir
+
+    assert check_writable_dir(tmp_path / "a" / "b", "out_dir") == tmp_path / "a" / "b"
+    assert list(tmp_path.iterdir()) == []  # nothing made, the probe removed
+    if Path("/proc/self").is_dir():  # writable by its bits for root, yet no file can be made
+        with pytest.raises(ConfigError, match=r"^out_dir: cannot write to /proc/x: /proc is not"):
+            check_writable_dir("/proc/x", "out_dir")
