@@ -144,6 +144,22 @@ def test_quality_report_asks_only_for_bins_that_hold_a_grid_value(make_spec):
     assert missing == ["val: attacker_max_speed bin [3.09, 3.1]"]
 
 
+def test_quality_report_is_complete_when_every_grid_value_occurs(make_spec):
+    # Speeds 0.2-1.2 on a 0.1 grid, one value per bin: 0.3 is written as 0.3, below the edge
+    # 0.30000000000000004 that the unrounded grid put it above (a bin reported missing).
+    from rlplat.scenarios import quality_report
+
+    wide = ("low=0.2", "high=1.2", "resolution=0.1")
+    spec = make_spec("scenario.n_train=300", "scenario.n_val=300", "scenario.n_test=300",
+                     *(f"scenario.params.attacker_max_speed.{x}" for x in wide))  # fmt: skip
+    splits = generate(spec)
+    i = spec.param_names.index("attacker_max_speed")
+    for cols in splits.values():
+        assert len(set(cols.values[:, i].tolist())) == 11  # every grid value occurs
+    comp = quality_report(spec, splits)["completeness"]
+    assert not [m for m in comp["missing"] if "attacker_max_speed" in m], comp["missing"]
+
+
 def test_quality_report_lists_missing_bins_of_a_tiny_split(make_spec, tmp_path):
     manifest = write_scenario_set(
         make_spec("scenario.n_train=200", "scenario.n_val=3", "scenario.n_test=3"), tmp_path
@@ -262,6 +278,25 @@ def test_load_returns_tensors_matching_files(make_spec, tmp_path):
         (("scenario.strategy_mix.nn=abc",), r"scenario.strategy_mix.nn: expected 1 numbers"),
         (("scenario.routes=[5]",), r"scenario.routes\[0\]: expected a list of \[x, y, z\]"),
         (("scenario.routes=5",), r"scenario.routes: expected a list of routes"),
+        # Starts on or under the ground would end (or not) at the first step.
+        (("scenario.min_altitude=0",), r"scenario.min_altitude: starts are above the ground"),
+        (
+            ("scenario.params.defender_z.low=-5",),
+            r"scenario.params.defender_z.low: starts are above the ground \(0 m\), got -5.0",
+        ),
+        # A grid finer than the files keep, or too large to bin.
+        (
+            ("scenario.params.defender_z.resolution=1e-9",),
+            r"scenario.params.defender_z.resolution: 1e-09 is finer than the files keep",
+        ),
+        (
+            ("scenario.params.defender_z.high=1e6", "scenario.params.defender_z.resolution=0.01"),
+            r"makes more than 10,000,000 values in \[low=6, high=1e\+06\]; at least 0.09999",
+        ),
+        (
+            ("scenario.params.defender_z.std=-1",),
+            r"scenario.params.defender_z.std: only dist=gaussian has a std; dist=uniform, got -1",
+        ),
     ],
 )  # fmt: skip
 def test_bad_config_is_refused_with_one_line(make_spec, overrides, message):

@@ -66,7 +66,10 @@ def _completeness(spec: ScenarioSpec, splits: dict[str, SplitColumns]) -> dict[s
             edges = np.linspace(p.low, p.high, spec.quality_bins + 1)
             counts, _ = np.histogram(cols.values[:, i], bins=edges)
             # A bin that holds no grid value (narrower than the resolution) cannot be filled.
-            grid, _ = np.histogram(p.low + np.arange(p.levels) * p.resolution, bins=edges)
+            # The grid as the files hold it (6 decimals): 0.1 + 2 * 0.1 is 0.30000000000000004,
+            # whose edge a written 0.3 falls below.
+            values = np.round(p.low + np.arange(p.levels) * p.resolution, 6)
+            grid, _ = np.histogram(values, bins=edges)
             for b in np.flatnonzero((counts == 0) & (grid > 0)):
                 missing.append(f"{split}: {name} bin [{edges[b]:.4g}, {edges[b + 1]:.4g}]")
     return {"complete": not missing, "bins": spec.quality_bins, "missing": missing}

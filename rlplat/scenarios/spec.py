@@ -23,6 +23,10 @@ PARAM_NAMES = (
 #: Defender strategies; a scenario stores the index into this tuple.
 STRATEGIES = ("setpoints", "nn")
 DISTRIBUTIONS = ("uniform", "gaussian")
+#: The finest grid step: values are written to 6 decimals.
+MIN_RESOLUTION = 1e-6
+#: The most grid values a parameter may have (the quality report bins them all).
+MAX_LEVELS = 10_000_000
 
 
 @dataclass(frozen=True)
@@ -198,6 +202,11 @@ class ScenarioSpec:
                 f"expected {', '.join(PARAM_NAMES)}"
             )
         params = {n: _param(params_raw[n], f"{where}.params.{n}") for n in PARAM_NAMES}
+        if not params["defender_z"].low > 0:  # a start on or under the ground ends at once
+            raise ConfigError(
+                f"{where}.params.defender_z.low: starts are above the ground (0 m), got "
+                f"{params['defender_z'].low}"
+            )
         for n in ("attacker_max_speed", "defender_max_speed"):
             if not params[n].low > 0:
                 raise ConfigError(
@@ -261,7 +270,7 @@ class ScenarioSpec:
             seed=_int(raw["seed"], f"{where}.seed", low=0),
             vision_semi_axes=axes,
             min_distance=min_distance,
-            min_altitude=_finite(raw["min_altitude"], f"{where}.min_altitude"),
+            min_altitude=_above_ground(raw["min_altitude"], f"{where}.min_altitude"),
             quality_bins=bins,
             params=params,
             strategy_mix=mix,
@@ -294,6 +303,14 @@ def _int(v: Any, where: str, low: int | None = None) -> int:
     return v
 
 
+def _above_ground(v: Any, where: str) -> float:
+    """``v`` as an altitude above the ground (> 0 m); one line naming ``where`` otherwise."""
+    out = _finite(v, where)
+    if not out > 0:
+        raise ConfigError(f"{where}: starts are above the ground (0 m), got {out}")
+    return out
+
+
 def _finite(v: Any, where: str) -> float:
     """``v`` as a finite float; a one-line :class:`ConfigError` naming ``where`` otherwise."""
     (out,) = _floats([v], where, 1)
@@ -321,6 +338,12 @@ def _param(raw: Any, where: str) -> ParamSpec:
     (res,) = _floats([raw.get("resolution")], f"{where}.resolution", 1)
     if not 0 < res <= high - low:
         raise ConfigError(f"{where}.resolution: must be in (0, high - low], got {res}")
+    if res < MIN_RESOLUTION or (high - low) / res >= MAX_LEVELS:
+        raise ConfigError(
+            f"{where}.resolution: {res:g} is finer than the files keep (6 decimals) or makes "
+            f"more than {MAX_LEVELS:,} values in [low={low:g}, high={high:g}]; at least "
+            f"{max(MIN_RESOLUTION, (high - low) / (MAX_LEVELS - 1)):.6g}"
+        )
     dist = raw.get("dist", "uniform")
     if dist not in DISTRIBUTIONS:
         raise ConfigError(
@@ -328,6 +351,12 @@ def _param(raw: Any, where: str) -> ParamSpec:
         )
     mean = raw.get("mean")
     std = raw.get("std")
+    if dist != "gaussian":  # would change the set's digest and draw nothing
+        for key, value in (("mean", mean), ("std", std)):
+            if value is not None:
+                raise ConfigError(
+                    f"{where}.{key}: only dist=gaussian has a {key}; dist={dist}, got {value!r}"
+                )
     if dist == "gaussian":
         mean = (low + high) / 2 if mean is None else _finite(mean, f"{where}.mean")
         std = (high - low) / 6 if std is None else _finite(std, f"{where}.std")
