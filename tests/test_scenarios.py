@@ -305,6 +305,14 @@ def test_bad_config_is_refused_with_one_line(make_spec, overrides, message):
     assert "\n" not in str(e.value)
 
 
+def test_a_small_vision_ellipsoid_under_the_default_offsets_is_drawn(make_spec):
+    # Most draws fall outside a 10/10/5 m ellipsoid (offsets up to 48 m): 1 vs 1 keeps its
+    # batch sizes for as many rounds as ever (the same files), then grows them with the rejection.
+    spec = make_spec("scenario.vision_semi_axes=[10,10,5]", "scenario.n_train=300",
+                     "scenario.n_val=100", "scenario.n_test=100")  # fmt: skip
+    assert sum(len(c.ids) for c in generate(spec).values()) == 500
+
+
 def test_unsatisfiable_constraints_are_refused(make_spec):
     # The grid holds enough combinations, but the altitude constraint rules all of them out.
     with pytest.raises(ConfigError, match=r"only 0 distinct scenarios meet the constraints"):

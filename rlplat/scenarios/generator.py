@@ -15,7 +15,7 @@ log = logging.getLogger(__name__)
 
 SPLITS = ("train", "val", "test")
 _MAX_ROUNDS = 60
-_MAX_BATCH = 1 << 18  # most candidates per round grown for the rejection rate (k > 1 or m > 1)
+_MAX_BATCH = 1 << 18  # most candidates per round grown for the rejection rate
 
 
 @dataclass(frozen=True)
@@ -159,12 +159,16 @@ def _distinct_feasible(spec: ScenarioSpec, rng: np.random.Generator) -> np.ndarr
     keys = np.empty((0, len(spec.param_names) + 2 * spec.defenders), dtype=np.int64)
     drawn = accepted = 0
     teams = spec.attackers > 1 or spec.defenders > 1
-    for _ in range(_MAX_ROUNDS):
-        # 1 vs 1 keeps its batch sizes (same draws, same files); with more drones, whose pairwise
-        # constraints reject far more candidates, the batch grows with the rejection so far.
+    for round_ in range(2 * _MAX_ROUNDS):
+        # With more drones, whose pairwise constraints reject far more candidates, the batch
+        # grows with the rejection so far. 1 vs 1 keeps its batch sizes for _MAX_ROUNDS rounds
+        # (same draws, same files as ever), then grows as well (a small vision ellipsoid under
+        # the default offset ranges: most draws are rejected).
+        if round_ == _MAX_ROUNDS and teams:
+            break
         need = 2.5 * (n - len(keys))
         m = max(1024, int(need))
-        if teams and drawn:
+        if (teams or round_ >= _MAX_ROUNDS) and drawn:
             m = max(m, min(int(need / max(accepted / drawn, 1e-3)), _MAX_BATCH))
         cand = _draw(spec, rng, m)
         drawn += m
@@ -177,9 +181,10 @@ def _distinct_feasible(spec: ScenarioSpec, rng: np.random.Generator) -> np.ndarr
             log.debug("drew %d candidates for %d scenarios", drawn, n)
             return keys[:n]
     raise ConfigError(
-        f"scenario: only {len(keys)} distinct scenarios meet the constraints after {drawn} draws, "
-        f"{n} requested (n_train + n_val + n_test); lower the counts, refine the resolution or "
-        "relax the constraints"
+        f"scenario: only {len(keys)} distinct scenarios meet the constraints after {drawn} draws "
+        f"({accepted} of them met them), {n} requested (n_train + n_val + n_test); lower the "
+        "counts, refine the resolution or relax the constraints (the attacker offset ranges "
+        "against the vision ellipsoid, min_distance, min_altitude, min_separation)"
     )
 
 
