@@ -613,6 +613,8 @@ def test_a_run_on_a_scenarios_dir_flies_and_records_the_sets_scenario(
         tiny_run(held, tmp_path / "run", "scenario=pursuit_2v1")
     assert f"scenario: the set in {held.path} was generated with another" in caplog.text
     assert "attackers, " in caplog.text and "vision_semi_axes" in caplog.text
+    # how a team is drawn means nothing to the 1-vs-1 set: not named
+    assert "min_separation" not in caplog.text and "defender_spread" not in caplog.text
     saved = OmegaConf.load(tmp_path / "run" / "config.yaml")
     assert saved.scenario.vision_semi_axes == [60.0, 50.0, 15.0]
     assert saved.scenario.seed == 3 and saved.scenario.attackers == 1

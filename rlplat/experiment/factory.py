@@ -84,9 +84,13 @@ def with_set_scenario(cfg: DictConfig, scenarios: ScenarioSet) -> DictConfig:
     not flown, and a warning names how it differs. ``cfg`` itself is left as it is."""
     if scenarios.spec is None:
         return cfg
-    flown = scenarios.spec.to_dict()
-    composed = ScenarioSpec.from_dict(OmegaConf.to_container(cfg.scenario, resolve=True)).to_dict()
-    differ = sorted(k for k in {*flown, *composed} if flown.get(k) != composed.get(k))
+    spec = ScenarioSpec.from_dict(OmegaConf.to_container(cfg.scenario, resolve=True))
+    flown, composed = dataclasses.asdict(scenarios.spec), dataclasses.asdict(spec)
+    # How a team is drawn (its separation, its defenders' spread) means nothing to a 1-vs-1
+    # set: with one, only the team's sizes differ.
+    teams = all(s.attackers > 1 or s.defenders > 1 for s in (scenarios.spec, spec))
+    skip = set() if teams else {"min_separation", "defender_spread"}
+    differ = sorted(k for k in flown if k not in skip and flown[k] != composed[k])
     if differ:  # a set's own seed and split sizes are what a set is drawn with, not a misfit
         sized = set(differ) <= {"seed", "n_train", "n_val", "n_test"}
         log.log(
