@@ -327,6 +327,10 @@ def test_pool_reads_evaluation_directories_as_it_reads_runs(tmp_path, capsys):
         *sorted((tmp_path / "s1" / "eval").iterdir()),
     ]
     assert pooled_rows(evaluations) == pooled_rows(runs)
+    # A folder of evaluations (evaluate.py compare=true out_dir=) pools as its run does.
+    assert pooled_rows([runs[0], tmp_path / "s1" / "eval"]) == pooled_rows(runs)
+    with pytest.raises(ConfigError, match=r"^pool: .*nowhere is not a directory"):
+        pooled_rows([tmp_path / "nowhere"])
     # An evaluation named twice (itself and its run) counts once.
     assert pooled_rows([*runs, evaluations[0], tmp_path / "s0" / ".." / "s0"]) == pooled_rows(runs)
     (row,) = paired_rows(evaluations, "proportional_navigation")

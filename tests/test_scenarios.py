@@ -328,7 +328,7 @@ def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
 def test_cli_writes_a_loadable_set_and_prints_the_report(tmp_path):
     r = _cli("out_dir=set", "scenario.seed=7", *SMALL, cwd=tmp_path)
     assert r.returncode == 0, r.stderr
-    assert "independence      independent" in r.stdout and "KS attacker_dx" in r.stdout
+    assert "independence      independent" in r.stdout and "KS   attacker_dx" in r.stdout
     manifest = json.loads((tmp_path / "set" / "manifest.json").read_text())
     assert manifest["seed"] == 7 and manifest["splits"]["val"]["count"] == 60
     assert len(manifest["config"]["routes"]) == 4
@@ -669,7 +669,7 @@ def test_team_quality_report_covers_the_extra_columns(make_spec, tmp_path):
     assert keys.shape == (363, len(spec.param_names) + 4)
     assert len(np.unique(keys, axis=0)) == len(keys)
     text = format_quality(q)
-    assert "KS attacker1_max_speed" in text and "chi2 defender1_strategy" in text
+    assert "KS   attacker1_max_speed" in text and "chi2 defender1_strategy" in text
 
 
 def test_two_vs_one_scenario_config_is_pursuit_with_two_attackers(make_spec):

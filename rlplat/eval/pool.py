@@ -102,14 +102,22 @@ def _read(run_dirs: list[Path], split: str) -> Evaluations:
 
 def _evaluations(path: Path, split: str) -> list[Path]:
     """The ``summary.json`` of each evaluation ``path`` names: a training run's
-    ``eval/<split>-*``, or one evaluation directory (``evaluate.py``'s ``out_dir``: its
+    ``eval/<split>-*``, a folder of evaluations (``evaluate.py compare=true out_dir=``: its
+    ``<split>-*``), or one evaluation directory (``evaluate.py``'s ``out_dir``: its
     ``summary.json`` beside its ``episodes.csv``)."""
+    if not path.is_dir():
+        raise ConfigError(f"pool: {path} is not a directory (a run, or an evaluation's folder)")
     own = path / "summary.json"
     if own.is_file() and (path / "episodes.csv").is_file():
         return [own]
-    paths = sorted(path.glob(f"eval/{split}-*/summary.json"))
+    paths = sorted(path.glob(f"eval/{split}-*/summary.json")) or sorted(
+        path.glob(f"{split}-*/summary.json")
+    )
     if not paths:
-        raise ConfigError(f"pool: no evaluation of the {split} split under {path}/eval")
+        raise ConfigError(
+            f"pool: no evaluation of the {split} split in {path} (a run's eval/{split}-*, a "
+            f"folder of {split}-* evaluations, or one evaluation)"
+        )
     return paths
 
 

@@ -128,7 +128,7 @@ def format_quality(quality: dict[str, Any]) -> str:
             cells = "".join(
                 f"{by_pair[p]['statistic']:>11.4f} / {by_pair[p]['pvalue']:<8.4f}" for p in pairs
             )
-            lines.append(f"  {test} {name:<{width}}{cells}")
+            lines.append(f"  {test:<4} {name:<{width}}{cells}")
     ind = quality["independence"]
     lines.append(
         f"independence      {'independent' if ind['independent'] else 'DUPLICATES'}  "
