@@ -91,3 +91,13 @@ def test_a_summary_that_is_not_one_and_a_bad_seed_are_one_line(tmp_path):
         with pytest.raises(ConfigError, match=rf"^{path}: {error}"):
             aggregate(tmp_path)
     assert not (tmp_path / "aggregate").exists()  # nothing written
+
+
+def test_a_seed_twice_in_a_variant_is_named(tmp_path, caplog):
+    from rlplat.eval.aggregate import collect
+
+    fake_sweep(tmp_path, {"default": [(0, 0.2, -50.0), (0, 0.2, -50.0), (1, 0.4, -40.0)]})
+    with caplog.at_level("WARNING", logger="rlplat.eval.aggregate"):
+        groups, _ = collect(tmp_path)
+    assert len(groups["default"]) == 3  # counted as they are, and said
+    assert "variant default has seed(s) [0] more than once (0, 1)" in caplog.text

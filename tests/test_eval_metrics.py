@@ -343,9 +343,9 @@ def test_pool_reads_evaluation_directories_as_it_reads_runs(tmp_path, capsys):
     assert out.out == "" and out.err.count("\n") == 1
 
 
-def test_against_refuses_an_unknown_reference_and_different_scenarios(tmp_path, capsys):
+def test_against_refuses_an_unknown_reference_and_different_scenarios(tmp_path, capsys, caplog):
     from rlplat.errors import ConfigError
-    from rlplat.eval.pool import main, paired_rows
+    from rlplat.eval.pool import main, paired_rows, pooled_rows
 
     _headroom_evaluation(tmp_path, "s0", "best", "checkpoint", [1, 1, 0, 0, 1])
     _headroom_evaluation(tmp_path, "s0", "pure_pursuit", "pure_pursuit", [1, 1, 0, 0, 1])
@@ -360,6 +360,9 @@ def test_against_refuses_an_unknown_reference_and_different_scenarios(tmp_path, 
                          scenario_digest="d1")  # fmt: skip
     with pytest.raises(ConfigError, match="2 scenario sets"):
         paired_rows([*runs, tmp_path / "s1"], "pure_pursuit")
+    with caplog.at_level("WARNING", logger="rlplat.eval.pool"):  # a plain table says so
+        pooled_rows([*runs, tmp_path / "s1"])
+    assert "the evaluations flew 2 scenario sets (d0, d1)" in caplog.text
     _headroom_evaluation(tmp_path, "d0", "best", "checkpoint", [1, 1, 0, 0, 1], learner="defender")
     _headroom_evaluation(tmp_path, "d0", "pure_pursuit", "pure_pursuit", [1, 1, 0, 0, 1])
     with pytest.raises(ConfigError, match="a defender; the gain is an attacker's"):

@@ -92,6 +92,13 @@ def collect(sweep_dir: str | Path) -> tuple[dict[str, list[dict[str, Any]]], lis
         record = {"seed": summary["seed"], "run_dir": str(run.relative_to(sweep_dir))}
         name = " ".join(o for o in found[run] if o not in common) or "default"
         groups[name].append(record | {k: float(summary[k]) for k in METRICS})
+    for name, records in groups.items():
+        seeds = [r["seed"] for r in records]
+        twice = sorted({s for s in seeds if seeds.count(s) > 1})
+        if twice:  # copies of one run would count as seeds of their own
+            log.warning("aggregate: variant %s has seed(s) %s more than once (%s); each run "
+                        "counts as a seed", name, twice,
+                        ", ".join(r["run_dir"] for r in records if r["seed"] in twice))  # fmt: skip
     return {k: sorted(v, key=lambda r: r["seed"]) for k, v in sorted(groups.items())}, common
 
 

@@ -57,8 +57,17 @@ log = logging.getLogger(__name__)
 
 
 def pooled_rows(run_dirs: list[Path], split: str = "test") -> list[dict[str, Any]]:
-    """Per policy (learned ones first, in the order met), the pooled outcome of its episodes."""
-    return _pooled(_read(run_dirs, split))
+    """Per policy (learned ones first, in the order met), the pooled outcome of its episodes.
+    Evaluations of several scenario sets pool with a warning (``--headroom`` and ``--against``
+    refuse them)."""
+    read = _read(run_dirs, split)
+    sets = sorted({str(s.get("scenario_digest"))[:12] for s in read[2]})
+    if len(sets) > 1:
+        log.warning(
+            "pool: the evaluations flew %d scenario sets (%s); the rows of policies flown on "
+            "different ones do not compare", len(sets), ", ".join(sets),
+        )  # fmt: skip
+    return _pooled(read)
 
 
 def _pooled(read: Evaluations) -> list[dict[str, Any]]:
