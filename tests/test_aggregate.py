@@ -101,3 +101,18 @@ def test_a_seed_twice_in_a_variant_is_named(tmp_path, caplog):
         groups, _ = collect(tmp_path)
     assert len(groups["default"]) == 3  # counted as they are, and said
     assert "variant default has seed(s) [0] more than once (0, 1)" in caplog.text
+
+
+def test_the_spread_of_one_seed_is_undefined_not_zero():
+    from rlplat.eval.aggregate import aggregate_scores
+
+    one = aggregate_scores([{"test_capture_rate": 0.5, "test_mean_return": -10.0}], reps=100)
+    assert one["test_capture_rate"]["std"] is None and one["test_capture_rate"]["iqm"] == 0.5
+    two = aggregate_scores(
+        [
+            {"test_capture_rate": 0.4, "test_mean_return": -10.0},
+            {"test_capture_rate": 0.6, "test_mean_return": -20.0},
+        ],
+        reps=100,
+    )
+    assert two["test_capture_rate"]["std"] == pytest.approx(0.1414, abs=1e-4)

@@ -120,7 +120,7 @@ def aggregate_scores(
             "iqm_ci95": [low, high],
             "mean": mean,
             "mean_ci95": [mean_low, mean_high],
-            "std": float(scores.std(ddof=1)) if len(scores) > 1 else 0.0,
+            "std": float(scores.std(ddof=1)) if len(scores) > 1 else None,  # of one: undefined
         }
     return out
 
