@@ -159,13 +159,11 @@ def _distinct_feasible(spec: ScenarioSpec, rng: np.random.Generator) -> np.ndarr
     keys = np.empty((0, len(spec.param_names) + 2 * spec.defenders), dtype=np.int64)
     drawn = accepted = 0
     teams = spec.attackers > 1 or spec.defenders > 1
-    for round_ in range(2 * _MAX_ROUNDS):
-        # With more drones, whose pairwise constraints reject far more candidates, the batch
-        # grows with the rejection so far. 1 vs 1 keeps its batch sizes for _MAX_ROUNDS rounds
-        # (same draws, same files as ever), then grows as well (a small vision ellipsoid under
-        # the default offset ranges: most draws are rejected).
-        if round_ == _MAX_ROUNDS and teams:
-            break
+    # With more drones, whose pairwise constraints reject far more candidates, the batch
+    # grows with the rejection so far. 1 vs 1 keeps its batch sizes for _MAX_ROUNDS rounds
+    # (same draws, same files as ever), then grows as well, for as many rounds again (a small
+    # vision ellipsoid under the default offset ranges: most draws are rejected).
+    for round_ in range(_MAX_ROUNDS if teams else 2 * _MAX_ROUNDS):
         need = 2.5 * (n - len(keys))
         m = max(1024, int(need))
         if (teams or round_ >= _MAX_ROUNDS) and drawn:

@@ -59,7 +59,11 @@ class AirSimError(RlplatError):
 class AirSimRefused(AirSimError):
     """The simulator answered a call with an error (rather than not answering): for a call
     that only checks (``listVehicles``, ``getSettingsString``, ``simIsPaused``), a simulator
-    without it, whatever its words."""
+    without it, whatever its words. ``reason``: its words, on one line."""
+
+    def __init__(self, message: str, reason: str | None = None) -> None:
+        super().__init__(message)  # one argument: it pickles (a worker's fault) as it is
+        self.reason = message if reason is None else reason
 
 
 @dataclass(frozen=True)
@@ -192,11 +196,10 @@ def _no_connection(reason: Any) -> bool:
     return isinstance(reason, str) and reason in _LIBRARY_LOSSES
 
 
-def _words(refusal: AirSimError) -> str:
+def _words(refusal: AirSimRefused) -> str:
     """Nothing for rpclib's words for a missing method; otherwise the simulator's, in
     parentheses (a call that checks and that it refused in other words)."""
-    text = str(refusal)
-    return "" if NO_FUNCTION in text else f" (it answered: {text.split('): ', 1)[-1]})"
+    return "" if NO_FUNCTION in refusal.reason else f" (it answered: {refusal.reason})"
 
 
 def _retrieved(task) -> None:
@@ -498,8 +501,9 @@ class AirSimClient:
                     f"lost the connection to the simulator at {self.address} while waiting for "
                     f"{method} ({what}); restart it and resume the run"
                 ) from None
+            words = one_line(reason)
             raise AirSimRefused(
-                f"simulator at {self.address} refused {method} ({what}): {one_line(reason)}"
+                f"simulator at {self.address} refused {method} ({what}): {words}", words
             ) from None
 
     def send(self, method: str, *args: Any):
