@@ -1,5 +1,6 @@
 import csv
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -116,3 +117,53 @@ def test_the_spread_of_one_seed_is_undefined_not_zero():
         reps=100,
     )
     assert two["test_capture_rate"]["std"] == pytest.approx(0.1414, abs=1e-4)
+
+
+def test_a_defender_sweep_is_scored_by_its_evasion_not_by_the_captures(tmp_path):
+    from rlplat.eval.aggregate import aggregate
+
+    fake_sweep(
+        tmp_path,
+        {
+            "drone=defender_v1": [(0, 0.3, 5.0), (1, 0.5, 4.0)],
+            "default": [(0, 0.8, -20.0), (1, 0.9, -10.0)],
+        },
+    )
+    for job, evasion in (("0", 0.61), ("1", 0.43)):  # the defender's jobs
+        path = tmp_path / job / "summary.json"
+        summary = json.loads(path.read_text())
+        path.write_text(json.dumps(summary | {"val_score": "evasion_score", "test_score": evasion}))
+    table = aggregate(tmp_path, reps=200)
+    summary = json.loads((tmp_path / "aggregate" / "summary.json").read_text())
+    defender = summary["variants"]["drone=defender_v1"]
+    assert defender["test_evasion_score"]["mean"] == pytest.approx(0.52)
+    assert defender["test_capture_rate"]["mean"] == pytest.approx(0.4)  # kept beside it
+    assert "test_evasion_score" not in summary["variants"]["default"]  # an attacker's has none
+    assert "| seed | run | test evasion score | test capture rate | test mean return |" in table
+    assert "| 0 | 0 | 0.610 | 0.300 | 5.00 |" in table
+    with open(tmp_path / "aggregate" / "seeds.csv") as f:
+        rows = {(r["variant"], r["seed"]): r for r in csv.DictReader(f)}
+    assert rows[("default", "0")]["test_evasion_score"] == ""  # one table, the column left empty
+    assert rows[("drone=defender_v1", "1")]["test_evasion_score"] == "0.43"
+    assert (tmp_path / "aggregate" / "seeds.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_a_defenders_summary_without_its_score_or_a_variant_of_two_roles_is_one_line(tmp_path):
+    from rlplat.eval.aggregate import aggregate
+
+    fake_sweep(tmp_path, {"default": [(0, 0.3, 5.0), (1, 0.5, 4.0)]})
+    path = tmp_path / "0" / "summary.json"
+    summary = json.loads(path.read_text()) | {"val_score": "evasion_score"}
+    for extra, error in (
+        ({}, "missing test_score (its val_score is evasion_score)"),
+        ({"test_score": None}, "test_score is None, not a finite number"),
+        ({"val_score": "speed", "test_score": 1.0},
+         "val_score 'speed' is none of capture_rate, evasion_score"),
+    ):  # fmt: skip
+        path.write_text(json.dumps(summary | extra))
+        with pytest.raises(ConfigError, match=rf"^{re.escape(str(path))}: {re.escape(error)}$"):
+            aggregate(tmp_path)
+    path.write_text(json.dumps(summary | {"test_score": 0.5}))  # job 1 stays an attacker's
+    with pytest.raises(ConfigError, match=r"^sweep_dir: variant default mixes runs scored "):
+        aggregate(tmp_path)
+    assert not (tmp_path / "aggregate").exists()  # nothing written

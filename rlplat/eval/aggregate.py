@@ -3,7 +3,9 @@
 ``python -m rlplat.eval.aggregate SWEEP_DIR`` reads every training run under ``SWEEP_DIR``
 (e.g. ``runs/multirun/<time>`` of ``train.py -m seed=0,1,2``), groups the runs by the Hydra
 overrides that set them apart other than ``seed`` (one group per configuration), and writes
-``SWEEP_DIR/aggregate/seeds.{csv,md,png}`` and ``summary.json``.
+``SWEEP_DIR/aggregate/seeds.{csv,md,png}`` and ``summary.json``. Each run is scored by what
+its learner maximises (the summary's ``val_score``): an attacker's capture rate, a
+defender's evasion score (beside the capture rate it allows).
 """
 
 from __future__ import annotations
@@ -31,6 +33,17 @@ log = logging.getLogger(__name__)
 
 #: What is aggregated: the best checkpoint's scores on the test split (training's summary.json).
 METRICS = {"test_capture_rate": "test capture rate", "test_mean_return": "test mean return"}
+#: The learner's own score where it is not the capture rate (``val_score`` of the summary):
+#: its key in the records and the table's label, the decimals it is shown with.
+SCORES = {"evasion_score": ("test_evasion_score", "test evasion score")}
+DIGITS = {"test_capture_rate": 3, "test_mean_return": 2, "test_evasion_score": 3}
+
+
+def metrics_of(records: list[dict[str, Any]]) -> dict[str, str]:
+    """The metrics (key -> label) the records hold: the learner's score first, where it is not
+    the capture rate."""
+    own = {key: label for key, label in SCORES.values() if records and key in records[0]}
+    return own | METRICS
 
 
 def find_runs(sweep_dir: Path) -> list[Path]:
@@ -85,14 +98,30 @@ def collect(sweep_dir: str | Path) -> tuple[dict[str, list[dict[str, Any]]], lis
         missing = [k for k in ("seed", *METRICS) if k not in summary]
         if missing:
             raise ConfigError(f"{path}: missing {', '.join(missing)}")
-        for key in METRICS:
-            value = summary[key]
+        score = summary.get("val_score", "capture_rate")  # what the learner maximised
+        if score != "capture_rate" and score not in SCORES:
+            raise ConfigError(
+                f"{path}: val_score {score!r} is none of capture_rate, {', '.join(SCORES)}"
+            )
+        values = {k: summary[k] for k in METRICS}
+        if score in SCORES:
+            if "test_score" not in summary:
+                raise ConfigError(f"{path}: missing test_score (its val_score is {score})")
+            values[SCORES[score][0]] = summary["test_score"]
+        for key, value in values.items():
             if not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise ConfigError(f"{path}: {key} is {value!r}, not a finite number")
+                shown = "test_score" if key not in summary else key
+                raise ConfigError(f"{path}: {shown} is {value!r}, not a finite number")
         record = {"seed": summary["seed"], "run_dir": str(run.relative_to(sweep_dir))}
         name = " ".join(o for o in found[run] if o not in common) or "default"
-        groups[name].append(record | {k: float(summary[k]) for k in METRICS})
+        groups[name].append(record | {k: float(v) for k, v in values.items()})
     for name, records in groups.items():
+        kinds = {tuple(k for k, _ in SCORES.values() if k in r) for r in records}
+        if len(kinds) > 1:  # one configuration, one learner: a mix is a sweep over roles
+            raise ConfigError(
+                f"sweep_dir: variant {name} mixes runs scored differently (an attacker's and a "
+                f"defender's: {', '.join(r['run_dir'] for r in records)}); aggregate them apart"
+            )
         seeds = [r["seed"] for r in records]
         twice = sorted({s for s in seeds if seeds.count(s) > 1})
         if twice:  # copies of one run would count as seeds of their own
@@ -105,13 +134,14 @@ def collect(sweep_dir: str | Path) -> tuple[dict[str, list[dict[str, Any]]], lis
 def aggregate_scores(
     records: list[dict[str, Any]], reps: int = 2000, seed: int = 0
 ) -> dict[str, dict[str, Any]]:
-    """Per metric: IQM and mean over seeds, each with its stratified-bootstrap 95 % CI.
+    """Per metric (:func:`metrics_of`): IQM and mean over seeds, each with its
+    stratified-bootstrap 95 % CI.
 
     The scores form a (seeds, 1) array: one task, the test split, so the stratified bootstrap
     resamples seeds with replacement (fixed ``seed`` for the resampling).
     """
     out = {}
-    for key in METRICS:
+    for key in metrics_of(records):
         scores = np.array([[r[key]] for r in records])
         point, low, high = stratified_bootstrap_ci(scores, iqm, reps=reps, seed=seed)
         mean, mean_low, mean_high = stratified_bootstrap_ci(scores, np.mean, reps=reps, seed=seed)
@@ -132,20 +162,20 @@ def markdown(groups: dict[str, list[dict]], stats: dict[str, dict], reps: int) -
         f"confidence intervals ({reps} resamples of the seeds).",
     ]
     for name, records in groups.items():
+        metrics = metrics_of(records)
         lines += ["", f"## {name} ({len(records)} seeds)", ""]
-        lines += ["| seed | run | test capture rate | test mean return |", "|---|---|---|---|"]
+        lines += ["| seed | run | " + " | ".join(metrics.values()) + " |"]
+        lines += ["|---|---|" + "---|" * len(metrics)]
         lines += [
-            f"| {r['seed']} | {r['run_dir']} | {r['test_capture_rate']:.3f} "
-            f"| {r['test_mean_return']:.2f} |"
+            f"| {r['seed']} | {r['run_dir']} | "
+            + " | ".join(f"{r[m]:.{DIGITS[m]}f}" for m in metrics)
+            + " |"
             for r in records
         ]
         s = stats[name]
         for label, key in (("IQM", "iqm"), ("mean", "mean")):
-            cells = [
-                _with_ci(s[m][key], s[m][key + "_ci95"], d)
-                for m, d in (("test_capture_rate", 3), ("test_mean_return", 2))
-            ]
-            lines.append(f"| **{label}** [95 % CI] | | {cells[0]} | {cells[1]} |")
+            cells = [_with_ci(s[m][key], s[m][key + "_ci95"], DIGITS[m]) for m in metrics]
+            lines.append(f"| **{label}** [95 % CI] | | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -164,8 +194,11 @@ def aggregate(sweep_dir: str | Path, reps: int = 2000, seed: int = 0) -> str:
     stats = {name: aggregate_scores(records, reps, seed) for name, records in groups.items()}
     out = sweep_dir / "aggregate"
     buffer = io.StringIO()
+    every = {}  # every metric of every variant, in order: a variant without one leaves it empty
+    for records in groups.values():
+        every |= metrics_of(records)
     writer = csv.DictWriter(
-        buffer, fieldnames=["variant", "seed", "run_dir", *METRICS], lineterminator="\n"
+        buffer, fieldnames=["variant", "seed", "run_dir", *every], lineterminator="\n"
     )
     writer.writeheader()
     for name, records in groups.items():
@@ -184,7 +217,7 @@ def aggregate(sweep_dir: str | Path, reps: int = 2000, seed: int = 0) -> str:
         "runs": groups,
     }
     atomic_write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
-    plot_seeds(groups, stats, METRICS, out / "seeds.png")
+    plot_seeds(groups, stats, every, out / "seeds.png")
     log.info("aggregated %d runs in %s", sum(map(len, groups.values())), out)
     return table
 

@@ -170,12 +170,15 @@ def plot_seeds(
     path: Path,
 ) -> None:
     """Per metric (``metrics``: key -> axis label), per variant: every seed's score, and the
-    IQM with its 95 % CI."""
+    IQM with its 95 % CI (a variant without the metric, e.g. an attacker's on a defender's
+    score, leaves its row empty)."""
     plt = pyplot()
     names = list(groups)
     fig, axes = plt.subplots(1, len(metrics), figsize=(11, 1.2 + 0.7 * len(names)), squeeze=False)
     for ax, (key, label) in zip(axes[0], metrics.items(), strict=True):
         for y, name in enumerate(names):
+            if key not in stats[name]:
+                continue
             xs = [r[key] for r in groups[name]]
             ax.scatter(xs, [y] * len(xs), color="grey", alpha=0.7, s=18, zorder=2,
                        label="seed" if y == 0 else None)  # fmt: skip
