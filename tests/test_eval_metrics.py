@@ -407,3 +407,41 @@ def test_route_labels_name_each_routes_direction_also_for_one_setpoint():
     assert route_labels(two) == ["+X", "-Y"]
     one = torch.tensor([[[-3.0, -4.0, 10.0]], [[50.0, 2.0, 10.0]]])  # from the origin
     assert route_labels(one) == ["-Y", "+X"]
+
+
+def test_pool_tells_runs_launched_with_other_overrides_apart(tmp_path, caplog):
+    """Runs of one drone launched differently are different policies, not more seeds of one:
+    each is labelled by the overrides that set it apart (an older evaluation by its run's
+    .hydra/ record)."""
+    from omegaconf import OmegaConf
+
+    from rlplat.eval.pool import paired_rows, pooled_rows
+
+    common = ["train.progress=false"]
+    _headroom_evaluation(tmp_path, "s0", "best", "checkpoint", [1, 1, 0, 0, 1],
+                         run_overrides=common)  # fmt: skip
+    _headroom_evaluation(tmp_path, "s1", "best", "checkpoint", [0, 1, 0, 0, 1],
+                         run_overrides=common)  # fmt: skip
+    _headroom_evaluation(tmp_path, "s1", "proportional_navigation", "proportional_navigation",
+                         [0, 1, 1, 0, 0])  # fmt: skip
+    # an evaluation written before run_overrides was recorded: its run's record is read
+    (tmp_path / "g0" / ".hydra").mkdir(parents=True)
+    OmegaConf.save(OmegaConf.create(["seed=0", *common, "algo.gamma=0.998"]),
+                   tmp_path / "g0" / ".hydra" / "overrides.yaml")  # fmt: skip
+    _headroom_evaluation(tmp_path, "g0", "best", "checkpoint", [1, 1, 1, 0, 1],
+                         run_dir=str(tmp_path / "g0"))  # fmt: skip
+    runs = [tmp_path / r for r in ("s0", "s1", "g0")]
+    rows = {r["policy"]: r for r in pooled_rows(runs)}
+    assert list(rows) == ["attacker_v8 (best) default", "attacker_v8 (best) algo.gamma=0.998",
+                          "proportional_navigation"]  # fmt: skip
+    assert rows["attacker_v8 (best) default"]["runs"] == 2
+    assert rows["attacker_v8 (best) algo.gamma=0.998"]["capture_rate"] == 4 / 5
+    paired = {r["policy"]: r for r in paired_rows(runs, "proportional_navigation")}
+    assert paired["attacker_v8 (best) default"]["run_gains"] == [0.2, 0.0]  # each run, learned
+    # one launch: one policy, as before, whatever else the runs recorded
+    assert [r["policy"] for r in pooled_rows(runs[:2])][0] == "attacker_v8 (best)"
+    # a run with no record pools under the plain label, and says the runs cannot all be told apart
+    _headroom_evaluation(tmp_path, "x0", "best", "checkpoint", [1, 1, 0, 0, 1])
+    with caplog.at_level("WARNING", logger="rlplat.eval.pool"):
+        labels = [r["policy"] for r in pooled_rows([*runs, tmp_path / "x0"])]
+    assert "attacker_v8 (best)" in labels and "have no record of their overrides" in caplog.text

@@ -21,12 +21,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from omegaconf import OmegaConf
 
 from rlplat.cli import exit_on_error
 from rlplat.errors import ConfigError
 from rlplat.eval.metrics import iqm, stratified_bootstrap_ci
 from rlplat.eval.plots import plot_seeds
+from rlplat.eval.summaries import run_overrides
 from rlplat.io import atomic_write_text
 
 log = logging.getLogger(__name__)
@@ -57,9 +57,7 @@ def find_runs(sweep_dir: Path) -> list[Path]:
 
 def overrides(run_dir: Path) -> list[str]:
     """The run's Hydra overrides other than ``seed`` (``.hydra/overrides.yaml``)."""
-    path = run_dir / ".hydra" / "overrides.yaml"
-    found = list(OmegaConf.load(path)) if path.is_file() else []
-    return [o for o in found if not o.split("=", 1)[0].lstrip("+~").startswith("seed")]
+    return run_overrides(run_dir) or []
 
 
 def collect(sweep_dir: str | Path) -> tuple[dict[str, list[dict[str, Any]]], list[str]]:

@@ -45,7 +45,7 @@ from rlplat.agents.policies import POLICIES
 from rlplat.cli import exit_on_error
 from rlplat.errors import ConfigError
 from rlplat.eval.metrics import speed_ratio_bin, speed_ratio_labels, wilson_interval
-from rlplat.eval.summaries import is_learned, num, policy_label
+from rlplat.eval.summaries import is_learned, launch_overrides, num, policy_label
 from rlplat.scenarios import SPLITS
 
 #: What :func:`_read` returns: episodes and run count per policy, and every summary read.
@@ -77,13 +77,12 @@ def _pooled(read: Evaluations) -> list[dict[str, Any]]:
 
 def _read(run_dirs: list[Path], split: str) -> Evaluations:
     """Every evaluation of ``split`` under the runs: episodes and run count per policy (learned
-    ones first, in the order met), and the evaluations' summaries."""
+    ones first, in the order met), and the evaluations' summaries. Runs of one drone launched
+    with different overrides (other than ``seed``) are different policies: their label names
+    the overrides that set them apart (as ``aggregate`` names its variants)."""
     if split not in SPLITS:
         raise ConfigError(f"split: unknown '{split}'; valid: {', '.join(SPLITS)}")
-    episodes: dict[str, list[dict[str, str]]] = defaultdict(list)
-    runs: dict[str, int] = defaultdict(int)
-    learned: dict[str, bool] = {}
-    summaries: list[dict[str, Any]] = []
+    flown: list[tuple[str, dict[str, Any], list[dict[str, str]]]] = []
     seen: set[Path] = set()
     for run_dir in run_dirs:
         for path in _evaluations(Path(run_dir), split):
@@ -93,20 +92,54 @@ def _read(run_dirs: list[Path], split: str) -> Evaluations:
                 continue
             seen.add(path.resolve())
             summary = json.loads(path.read_text())
-            flown = summary.get("split", split)  # a run's eval/<split>-* are of it by name
-            if flown != split:
+            of = summary.get("split", split)  # a run's eval/<split>-* are of it by name
+            if of != split:
                 raise ConfigError(
-                    f"pool: {path.parent} evaluates the {flown} split, not {split}; "
-                    f"pass --split {flown}"
+                    f"pool: {path.parent} evaluates the {of} split, not {split}; pass --split {of}"
                 )
-            summaries.append(summary)
-            label = policy_label(summary)
-            learned[label] = is_learned(summary)
             with open(path.parent / "episodes.csv", newline="") as f:
-                episodes[label].extend({**r, RUN: str(path.parent)} for r in csv.DictReader(f))
-            runs[label] += 1
+                rows = [{**r, RUN: str(path.parent)} for r in csv.DictReader(f)]
+            flown.append((policy_label(summary), summary, rows))
+    labels = _variant_labels(flown)
+    episodes: dict[str, list[dict[str, str]]] = defaultdict(list)
+    runs: dict[str, int] = defaultdict(int)
+    learned: dict[str, bool] = {}
+    for label, (_, summary, rows) in zip(labels, flown, strict=True):
+        summary[LABEL] = label
+        learned[label] = is_learned(summary)
+        episodes[label].extend(rows)
+        runs[label] += 1
     order = sorted(episodes, key=lambda k: (not learned[k], list(episodes).index(k)))
-    return {label: episodes[label] for label in order}, runs, summaries
+    return {label: episodes[label] for label in order}, runs, [s for _, s, _ in flown]
+
+
+LABEL = "_label"  # the label pool gives an evaluation's policy, set on its summary
+
+
+def _variant_labels(flown: list[tuple[str, dict[str, Any], list[dict[str, str]]]]) -> list[str]:
+    """Each evaluation's label: its policy's, and for a learned policy whose runs were launched
+    with different overrides, the overrides that set its run apart from the others (``default``
+    for none). The overrides are the evaluation's ``run_overrides``, or those in its run's
+    ``.hydra/`` where an older evaluation has none."""
+    launches = [
+        None if not is_learned(s) or (o := launch_overrides(s)) is None else tuple(o)
+        for _, s, _ in flown
+    ]
+    labels = [label for label, _, _ in flown]
+    for label in dict.fromkeys(labels):
+        mine = [i for i, (other, s, _) in enumerate(flown) if other == label and is_learned(s)]
+        known = {launches[i] for i in mine} - {None}
+        if len(known) < 2:  # one launch (or none recorded): one policy
+            continue
+        if any(launches[i] is None for i in mine):
+            log.warning("pool: some runs of %s have no record of their overrides; the others "
+                        "are labelled by them", label)  # fmt: skip
+        common = set.intersection(*map(set, known))
+        for i in mine:
+            if launches[i] is not None:
+                apart = [o for o in launches[i] if o not in common]
+                labels[i] = f"{label} {' '.join(apart) or 'default'}"
+    return labels
 
 
 def _evaluations(path: Path, split: str) -> list[Path]:
@@ -282,7 +315,7 @@ def _paired(read: Evaluations, against: str) -> list[dict[str, Any]]:
     _attackers_only(summaries, "--against", "the gain is an attacker's capture rate")
     _one_set(summaries, "--against")
     per = {label: _per_scenario(rows) for label, rows in episodes.items()}
-    learned = {policy_label(s) for s in summaries if is_learned(s)}
+    learned = {s[LABEL] for s in summaries if is_learned(s)}
     reference = per[against]
     sids = sorted(reference)
     out = []

@@ -41,6 +41,7 @@ from rlplat.eval.ceiling import intercept_ceiling, route_flown
 from rlplat.eval.compare import compare, evaluations_dir
 from rlplat.eval.episodes import EpisodeResults, evaluate
 from rlplat.eval.report import write_report
+from rlplat.eval.summaries import run_overrides
 from rlplat.eval.tables import differing_outcomes, episode_rows, summarize, write_csv
 from rlplat.experiment.factory import (
     build_component,
@@ -444,6 +445,7 @@ def evaluate_run(
         "lone_in_team": state is not None and lone_in_team,
         "split": split,
         "run_dir": str(run_dir),
+        "run_overrides": run_overrides(run_dir),  # how the run was launched: pool's variants
         "drone": cfg.drone.name,
         "learner": cfg.drone.learner,
         "dynamics": cfg.dynamics.name,
