@@ -391,6 +391,9 @@ def test_a_guided_controller_exports_with_its_guidance(
     assert ("route_path, computed by the host:" in text) == (path is not None)
     if path is not None:
         assert f"lag 0.9, gain 1, acceptance 1, start_lag {path['start_lag']:g}, horizon" in text
+        # how the meeting point is searched, and what it is where none can be reached
+        assert path["resolution_s"] == 0.25 and path["reach_m"] == 1.2
+        assert "resolution_s 0.25, reach_m 1.2." in text and "Unreachable: where no" in text
     assert ("route_conformity, computed by the host:" in text) == (conformity is not None)
     if conformity is not None:
         assert "route_lag 0.9 0.9 0.35, conformity_time 1, control_period 0.1" in text
@@ -587,12 +590,27 @@ def test_two_controllers_with_their_own_prefixes_link_into_one_program(run, tmp_
     d_obs = torch.tensor([3.0 - float(i % 7) for i in range(actors["defender"].obs_dim)])
     expected = torch.cat([actors["attacker"](a_obs[None])[0], actors["defender"](d_obs[None])[0]])
     assert got.shape == expected.shape and np.abs(got - expected.numpy()).max() <= 1e-5
+    # One translation unit holding both (a unity build): no name of one is the other's.
+    unity = '#include "attacker/policy.c"\n#include "defender/policy.c"\n' + TWO_CONTROLLERS
+    (tmp_path / "unity.c").write_text(unity)
+    subprocess.run(["cc", *C_FLAGS, "-Werror", "unity.c", "-lm", "-o", "unity"],
+                   cwd=tmp_path, check=True)  # fmt: skip
+    out = subprocess.run([str(tmp_path / "unity")], capture_output=True, text=True, check=True)
+    assert np.array([float(v) for v in out.stdout.split()]).tolist() == got.tolist()
     # Prefixes whose names would clash with another's (one uppercase guard for two cases) or
     # that C reserves (a leading or double underscore).
     for bad in ("9lives", "Attacker", "_", "__x", "a__b", "a_", "a-b", "x" * 25):
         with pytest.raises(ConfigError, match=rf"^prefix: '{bad}' does not start C names"):
             c_sources(actors["attacker"], prefix=bad)
     assert "void blue_2_policy(" in c_sources(actors["attacker"], prefix="blue_2")[0]
+    # Names the C library reserves: E and a capital (errno.h), to, is, str and a lowercase
+    # letter (ctype.h, string.h), SIG and a capital (signal.h).
+    for bad, name in (("evader", "EVADER_OBS_DIM"), ("token", "token_policy"),
+                      ("island", "island_policy"), ("strike", "strike_policy"),
+                      ("signal", "SIGNAL_OBS_DIM")):  # fmt: skip
+        with pytest.raises(ConfigError, match=rf"^prefix: '{bad}' makes {name}, a name C "):
+            c_sources(actors["attacker"], prefix=bad)
+    assert "void drone_evader_policy(" in c_sources(actors["attacker"], prefix="drone_evader")[0]
 
 
 def test_a_team_run_exports_and_flies_one_call_per_drone(tmp_path, write_set, short_run):

@@ -54,6 +54,20 @@ C_PREFIX = "rlplat"
 #: leading, trailing or double underscore, names C reserves (``__POLICY_H``).
 _C_PREFIX = re.compile(r"[a-z][a-z0-9]*(?:_[a-z0-9]+)*")
 _C_PREFIX_MAX = 24
+#: Names the C standard library reserves (C11 7.31, future library directions), by the header
+#: that reserves them: a prefix that starts one of them in lower or upper case is refused.
+_C_RESERVED = (
+    (re.compile(r"E[0-9A-Z]"), "errno.h"),
+    (re.compile(r"(is|to)[a-z]"), "ctype.h"),
+    (re.compile(r"LC_[A-Z]"), "locale.h"),
+    (re.compile(r"SIG[A-Z_]"), "signal.h"),
+    (re.compile(r"(str|mem|wcs)[a-z]"), "string.h, stdlib.h"),
+    (re.compile(r"(PRI|SCN)[a-zX]"), "inttypes.h"),
+    (re.compile(r"FE_[A-Z]"), "fenv.h"),
+    (re.compile(r"(atomic_|memory_order_)[a-z]|ATOMIC_[A-Z]"), "stdatomic.h"),
+    (re.compile(r"(cnd|mtx|thrd|tss)_[a-z]"), "threads.h"),
+    (re.compile(r"TIME_[A-Z]"), "time.h"),
+)
 
 
 def c_api(prefix: str = C_PREFIX) -> str:
@@ -75,7 +89,20 @@ def check_prefix(prefix: Any, field: str = "prefix") -> str:
             f"{field}: {prefix!r} does not start C names (lowercase letters and digits, words "
             f"joined by single _, starting with a letter; at most {_C_PREFIX_MAX} characters)"
         )
+    for name in c_names(prefix):
+        for pattern, where in _C_RESERVED:
+            if pattern.match(name):
+                raise ConfigError(
+                    f"{field}: {prefix!r} makes {name}, a name C reserves ({where}); choose "
+                    f"another prefix, e.g. 'drone_{prefix}'"
+                )
     return prefix
+
+
+def c_names(prefix: str) -> list[str]:
+    """The external and macro names, and the first table's, that ``prefix`` starts."""
+    p = prefix.upper()
+    return [f"{prefix}_policy", f"{prefix}_inv_scale", f"{p}_OBS_DIM", f"{p}_POLICY_H"]
 
 
 def observation_key(group: str | None) -> str | tuple[str, str]:
@@ -301,6 +328,16 @@ def c_sources(
     layers = actor.layers()
     obs_dim, act_dim = actor.obs_dim, actor.action_dim
     p = check_prefix(prefix).upper()
+    widths = [obs_dim] + [spec["out"] for spec in layers if spec["type"] == "Linear"]
+    widths[-1] = act_dim  # the last Linear keeps the mean's outputs only
+    stack = 4 * sum(widths)
+    contract = (
+        f"The call is reentrant and keeps no state: no initialisation, no global written, "
+        f"no heap; about {stack} bytes of stack for the layer buffers. obs and action may be "
+        f"the same array (obs is read whole before action is written; an array of "
+        f"{p}_OBS_DIM floats then). Link with -lm. The tables are static, their names start "
+        f"with {prefix}_, so two controllers of different prefixes build as two files or as one."
+    )
     header = (
         _comment(
             [
@@ -317,6 +354,8 @@ def c_sources(
         f"#define {p}_ACT_DIM  {act_dim}\n\n"
         '#ifdef __cplusplus\nextern "C" {\n#endif\n\n'
         "/* obs: the observation exactly as the env emits it (SI units, the order above).\n"
+        + "".join(f" * {line}\n" for line in textwrap.wrap(contract, 76))
+        + " *\n"
         + "".join(f" * {line}\n" for line in textwrap.wrap(f"action: {action}", 76))
         + " * A NaN observation gives NaN actions (an infinite one may), as the torch actor\n"
         " * does: check them before flying the command (not so under -ffast-math, which\n"
@@ -326,11 +365,11 @@ def c_sources(
     )
 
     tables = [
-        "/* 1 / the observation's typical magnitudes: the network sees obs * INV_SCALE */\n"
-        f"static const float INV_SCALE[{p}_OBS_DIM] = {{\n"
+        "/* 1 / the observation's typical magnitudes: the network sees obs * inv_scale */\n"
+        f"static const float {prefix}_inv_scale[{p}_OBS_DIM] = {{\n"
         f"{_c_array(actor.inv_scale.numpy())}\n}};\n"
     ]
-    body = [f"    for (i = 0; i < {obs_dim}; ++i) x0[i] = obs[i] * INV_SCALE[i];"]
+    body = [f"    for (i = 0; i < {obs_dim}; ++i) x0[i] = obs[i] * {prefix}_inv_scale[i];"]
     buffers = [f"    float x0[{obs_dim}];"]
     linears = [m for m in actor.mlp if isinstance(m, nn.Linear)]
     k, n = 0, obs_dim  # the current buffer and its width
@@ -346,17 +385,18 @@ def c_sources(
             note = f", its first {width} outputs (the mean)" if last else ""
             k += 1
             tables.append(
-                f"/* layer {k}: Linear {spec['in']} -> {spec['out']}{note}; W{k}[i][j] weighs "
-                f"input i in output j */\n"
-                f"static const float W{k}[{spec['in']}][{width}] = {{\n{_c_array(w)}\n}};\n"
-                f"static const float B{k}[{width}] = {{\n{_c_array(b)}\n}};\n"
+                f"/* layer {k}: Linear {spec['in']} -> {spec['out']}{note}; {prefix}_w{k}[i][j] "
+                f"weighs input i in output j */\n"
+                f"static const float {prefix}_w{k}[{spec['in']}][{width}] = "
+                f"{{\n{_c_array(w)}\n}};\n"
+                f"static const float {prefix}_b{k}[{width}] = {{\n{_c_array(b)}\n}};\n"
             )
             y = f"x{k}"
             buffers.append(f"    float {y}[{width}];")
             body += [
                 f"    /* Linear {spec['in']} -> {spec['out']} */",
-                f"    for (j = 0; j < {width}; ++j) {y}[j] = B{k}[j];",
-                *_c_dense(x, y, f"W{k}", n, width),
+                f"    for (j = 0; j < {width}; ++j) {y}[j] = {prefix}_b{k}[j];",
+                *_c_dense(x, y, f"{prefix}_w{k}", n, width),
             ]
             n = width
         elif kind == "ReLU":

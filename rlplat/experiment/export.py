@@ -60,6 +60,7 @@ from rlplat.agents.native import (
     time_c,
     time_onnx,
 )
+from rlplat.envs.kinematics import ROUTE_RESOLUTION
 from rlplat.errors import ConfigError, ExportError
 from rlplat.eval.episodes import rollout_observations
 from rlplat.experiment.config import compose_config
@@ -230,9 +231,12 @@ def describe_lines(src: Source, env, features: list[dict[str, Any]]) -> list[str
     if getattr(env.action_fn, "guided", False):
         lines += ["", *env.action_fn.describe()]
     for name, model in host_models(env).items():  # the numbers too, not only card.json's
-        numbers = ", ".join(f"{k} {_number(v)}" for k, v in model.items() if k != "model")
+        numbers = ", ".join(f"{k} {_number(v)}" for k, v in model.items()
+                            if k != "model" and not isinstance(v, str))  # fmt: skip
+        words = "".join(f" {k.capitalize()}: {v}." for k, v in model.items()
+                        if k != "model" and isinstance(v, str))  # fmt: skip
         lines += ["", *textwrap.wrap(f"{name}, computed by the host: {model['model']}; "
-                                     f"{numbers}.", 76)]  # fmt: skip
+                                     f"{numbers}.{words}", 76)]  # fmt: skip
     return lines
 
 
@@ -283,6 +287,17 @@ def host_models(env) -> dict[str, dict[str, Any]]:
             "start_lag s, within horizon s from now (rlplat.envs.kinematics.route_intercept)",
             **path,
             "horizon": env.meeting_horizon,  # the seconds searched (a null setting: the limit)
+            "resolution_s": ROUTE_RESOLUTION,  # the instants tried: every resolution_s s
+            "reach_m": env.capture_radius,  # a point within this of the attacker's reach counts
+            "reachable": "a point at time t counts when the attacker's largest per-axis gap to "
+            "it is at most max_speed * (t - start_lag) + reach_m; t runs over resolution_s, "
+            "2 * resolution_s, ... up to the horizon, and the first that counts is the meeting "
+            "point",
+            "unreachable": "where no instant counts, the point is the path's at the horizon "
+            "(the route's end if it gets there sooner), its time the horizon, reachable 0",
+            "defender": "each attacker's nearest defender not yet caught (by distance); its "
+            "position, velocity, maximum speed and the setpoints of its route from its current "
+            "one on",
         }
     if getattr(env.obs_fn, "reads_conformity", False):  # features the caller computes, with state
         models["route_conformity"] = {
