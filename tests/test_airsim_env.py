@@ -620,7 +620,9 @@ def test_two_simulators_step_in_parallel_as_one_env_of_batch_2_and_a_fault_names
         env = airsim_env(scenarios, *(s.address for s in servers), clock_speed=0.25)
         assert env.batch_size == torch.Size([2])
         check_env_specs(env, seed=0)
-        env.set_seed(0)  # restarts the walks
+        env.set_seed(0)  # restarts the walks: from one random state, each its share of it
+        first, second = env.sampler_state()
+        assert torch.equal(first, second)
         td = env.reset()
         assert td["scenario_index"].view(-1).tolist() == [0, 1]  # each its share of the split
         clocks = [s.snapshot()["t_ns"] for s in servers]

@@ -518,6 +518,38 @@ def test_workers_of_a_serial_env_share_one_walk_of_the_split(scenarios):
     workers.close()
 
 
+@pytest.mark.parametrize("order", ["shuffled", "random", "weighted"])
+def test_seeded_workers_split_one_drawn_walk_as_one_batch_does(scenarios, order):
+    """Workers that draw their walk split it too (each keeps its share of the same draws) once
+    seeded alike; 32 resets of two workers fly what a batch of two flies, so a shuffled pass of
+    the 64 train scenarios flies each once."""
+    from torchrl.envs import SerialEnv
+
+    setting = "shuffled" if order == "weighted" else order
+    args = (f"env.scenario_order={setting}",)
+    workers = SerialEnv(2, [lambda i=i: make_env(*args, scenarios=scenarios, share=(i, 2))
+                            for i in range(2)])  # fmt: skip
+    batch = make_env(*args, scenarios=scenarios, num_envs=2)
+    if order == "weighted":  # draws in proportion to weights, as failure_weight sets them
+        weights = torch.arange(64, dtype=torch.float64) % 3
+        batch.sampler.set_weights(weights)
+        workers.start()
+        for env in workers._envs:
+            env.sampler.set_weights(weights)
+    workers.set_seed(5, static_seed=True)
+    batch.set_seed(5)
+
+    def walk(env):
+        return torch.stack([env.reset()["scenario_index"].flatten() for _ in range(32)])
+
+    flown = walk(workers)
+    assert torch.equal(flown, walk(batch))
+    assert not torch.equal(flown[:, 0], flown[:, 1])  # the two workers fly different scenarios
+    if order == "shuffled":
+        assert sorted(flown.flatten().tolist()) == list(range(64))
+    workers.close()
+
+
 def test_a_copy_of_a_compiled_env_steps_its_own_state(scenarios):
     import copy
     import pickle

@@ -414,6 +414,13 @@ def test_bad_arguments_are_refused_before_any_work(trained_run, kwargs, message)
     assert not (trained_run / "bad").exists()
 
 
+def test_an_out_dir_that_is_a_run_is_refused_and_the_runs_summary_kept(trained_run):
+    before = (trained_run / "summary.json").read_bytes()
+    with pytest.raises(ConfigError, match=r"^out_dir: .* is a training run's directory; its "):
+        evaluate_run(trained_run, out_dir=trained_run, split="val", plots=False)
+    assert (trained_run / "summary.json").read_bytes() == before
+
+
 def test_an_empty_split_is_refused_before_any_work(trained_run, tmp_path, write_small_set):
     held = write_small_set(tmp_path / "set", "scenario.n_val=0")
     with pytest.raises(ConfigError) as e:

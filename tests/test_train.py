@@ -10,6 +10,7 @@ import torch
 from omegaconf import OmegaConf
 
 from rlplat.agents.checkpoint import load_checkpoint, load_policy
+from rlplat.agents.policies import SHIPPED_DEFENDER, shipped_path
 from rlplat.errors import ConfigError, DivergenceError, RlplatError
 from rlplat.experiment.config import compose_config
 from rlplat.scenarios import STRATEGIES
@@ -508,9 +509,11 @@ def test_what_train_would_refuse_later_is_refused_before_any_work(
         "error: init_from: no checkpoint at /nonexistent (a run directory or a .pt file)"
     )
     a_file = scenarios.path / "manifest.json"
+    controller = shipped_path(SHIPPED_DEFENDER)  # a controller file: an actor alone
     for args, refusal in (
         (["init_from=/nonexistent"], "init_from: no checkpoint at /nonexistent"),
         ([f"init_from={a_file}"], f"init_from: checkpoint: {a_file} is not an rlplat checkpoint"),
+        ([f"init_from={controller}"], f"init_from: {controller} holds a policy alone"),
         (["env.defender_network=/nonexistent.pt"], "env.defender_network: checkpoint: no file"),
         (["algo.demonstrations=[/nonexistent.json]"], "algo.demonstrations: no plays file"),
         (["observation=relative_state"], "action.gate_high: the gate reads the route deviation"),
@@ -640,6 +643,36 @@ def test_a_sweep_with_one_bad_job_starts_none(tmp_path, train_cli):
         "error: seed: must be an integer in [0, 4294967295], got -1 (in the sweep's job seed=-1)\n"
     )
     assert not sweep.exists()
+
+
+def test_run_directories_that_no_run_can_have_are_refused_before_any_work(
+    tmp_path, scenarios, tiny, refused_in_process
+):
+    # Jobs of a sweep sharing a directory (Hydra would rewrite the first run's .hydra/ record
+    # before the second is refused), an empty run directory (the current one), one under a
+    # file: each one line, nothing made.
+    train_cli = functools.partial(refused_in_process, "train.py")
+    tiny, sweep = (*tiny, f"scenarios_dir={scenarios.path}"), tmp_path / "sweep"
+    err = train_cli("-m", *tiny, f"hydra.sweep.dir={sweep}", "hydra.sweep.subdir=s${seed}",
+                    "seed=0", "algo.gamma=0.9,0.99")  # fmt: skip
+    assert not sweep.exists()
+    assert err == (
+        "error: hydra.sweep.subdir: the sweep's jobs algo.gamma=0.9 and algo.gamma=0.99 share "
+        f"the directory {sweep / 's0'}; a subdir that tells every job apart (the default, "
+        "${hydra.job.num}) gives each its own\n"
+    )
+    assert train_cli(*tiny, "hydra.run.dir=").startswith("error: hydra.run.dir: empty, which")
+    a_file = scenarios.path / "manifest.json"
+    err = train_cli(*tiny, f"hydra.run.dir={a_file / 'run'}")
+    assert err == f"error: hydra.run.dir: cannot write to {a_file / 'run'}: {a_file} is a file\n"
+    # a sweep of another tool whose jobs write to one out_dir: the last would replace the first
+    out = tmp_path / "set"
+    err = refused_in_process("-m", "rlplat.scenarios", "-m", f"out_dir={out}", "scenario.seed=1,2")
+    assert err == (
+        f"error: out_dir: the sweep's jobs scenario.seed=1 and scenario.seed=2 both write to "
+        f"{out}; give each its own (e.g. out_dir=DIR/${{hydra:job.num}}), or none\n"
+    )
+    assert not out.exists()
 
 
 @pytest.mark.slow

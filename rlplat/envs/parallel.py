@@ -182,6 +182,12 @@ class PursuitParallelEnv(ParallelEnv):
             return _WorkerSamplers(self)
         return super().__getattr__(attr)
 
+    def set_seed(self, seed: int | None = None, static_seed: bool = False) -> int | None:
+        """Seed every worker alike, whatever ``static_seed``: the workers split one scenario
+        walk (each its share of it), which they draw from the same random state, as one
+        batched env of N draws its walk from one seed. Returns ``seed``."""
+        return super().set_seed(seed, static_seed=True)
+
     def sampler_state(self) -> list[Tensor]:
         """Each worker's scenario walk state."""
         return self._dispatch(("sampler", "get_state"))

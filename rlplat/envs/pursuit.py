@@ -59,7 +59,10 @@ class ScenarioSampler:
 
     ``share=(i, c)``: this sampler is the i-th of c that split one walk, each taking every c-th
     index of it from the i-th on (c single-env workers flying one split, as one batch of c
-    envs would: with ``sequential``, worker i flies scenarios i, i + c, ...).
+    envs would: with ``sequential``, worker i flies scenarios i, i + c, ...; with ``shuffled``,
+    ``random`` or weights, every worker draws the whole walk from the same random state and
+    keeps its share, so the c samplers must be seeded alike: ``set_seed(seed,
+    static_seed=True)`` on a SerialEnv or ParallelEnv of them).
 
     :meth:`set_weights` replaces the order by draws in proportion to per-scenario weights.
     """
@@ -99,12 +102,13 @@ class ScenarioSampler:
 
     def next(self, k: int) -> Tensor:
         """Indices (k,) int64 of the next k scenarios."""
+        need = k * self.count  # the walk's next indices for all c shares: this one keeps its own
         if self.weights is not None:
-            idx = torch.multinomial(self.weights, k, replacement=True, generator=self.generator)
+            idx = torch.multinomial(self.weights, need, replacement=True, generator=self.generator)
+            idx = idx[self.index :: self.count]
         elif self.order == "random":
-            idx = torch.randint(self.n, (k,), generator=self.generator)
+            idx = torch.randint(self.n, (need,), generator=self.generator)[self.index :: self.count]
         else:
-            need = k * self.count
             while len(self.queue) < need:  # sequential walks the split; shuffled, one perm per pass
                 epoch = (
                     torch.arange(self.n)

@@ -20,6 +20,7 @@ from omegaconf import open_dict
 from rlplat.cli import exit_on_error
 from rlplat.errors import ConfigError, RlplatError
 from rlplat.experiment.config import CONF_DIR, compose_config
+from rlplat.io import check_writable_dir
 
 T = TypeVar("T")
 
@@ -152,21 +153,41 @@ def check_command_line(
         len(list(o.sweep_string_iterator())) if o.is_sweep_override() else 1 for o in parsed
     ) == len(jobs)  # fmt: skip
     swept = {o.get_key_element() for o in parsed if o.is_sweep_override()}
+    field = "hydra.sweep.dir" if multirun else "hydra.run.dir"
+    dirs: dict[Path, str] = {}  # each job's directory, and the job that has it
     for num, overrides in enumerate(jobs):
         cfg = _compose(config_name, overrides)
         job_dir = _job_dir(cfg, multirun, num if exact else None)
+        job = " ".join(o for o in overrides if o.split("=", 1)[0] in swept)
+        out = _out_dir(cfg) if multirun and job_dir is not None else None
         with open_dict(cfg):
             del cfg["hydra"]
         try:
+            if job_dir is not None and validate_job is not None:  # a job that writes there
+                check_writable_dir(job_dir, field)
             if validate is not None:
                 validate(cfg)
             if validate_job is not None:
-                validate_job(cfg, job_dir, "hydra.sweep.dir" if multirun else "hydra.run.dir")
+                validate_job(cfg, job_dir, field)
         except RlplatError as e:
             if not swept:
                 raise
-            job = " ".join(o for o in overrides if o.split("=", 1)[0] in swept)
             raise type(e)(f"{e} (in the sweep's job {job})") from None
+        if job_dir is not None and multirun and validate_job is not None:
+            other = dirs.setdefault(job_dir.resolve(), job)
+            if other != job:  # Hydra would write the second's record into the first's run
+                raise ConfigError(
+                    f"hydra.sweep.subdir: the sweep's jobs {other} and {job} share the directory "
+                    f"{job_dir}; a subdir that tells every job apart (the default, "
+                    "${hydra.job.num}) gives each its own"
+                )
+        if out is not None:
+            other = dirs.setdefault(Path(str(out)).resolve(), job)
+            if other != job:  # the second job's files would replace the first's
+                raise ConfigError(
+                    f"out_dir: the sweep's jobs {other} and {job} both write to {out}; give "
+                    "each its own (e.g. out_dir=DIR/${hydra:job.num}), or none"
+                )
 
 
 def _job_dir(cfg: Any, multirun: bool, num: int | None) -> Path | None:
@@ -176,6 +197,11 @@ def _job_dir(cfg: Any, multirun: bool, num: int | None) -> Path | None:
 
     try:
         if not multirun:
+            if not str(cfg.hydra.run.dir).strip():  # Path("") is the current directory
+                raise ConfigError(
+                    "hydra.run.dir: empty, which would write the run into the current "
+                    "directory; name a directory"
+                )
             return Path(str(cfg.hydra.run.dir))
         if num is None:
             return None
@@ -184,6 +210,17 @@ def _job_dir(cfg: Any, multirun: bool, num: int | None) -> Path | None:
         return Path(str(cfg.hydra.sweep.dir)) / str(cfg.hydra.sweep.subdir)
     except OmegaConfBaseException:
         return None
+
+
+def _out_dir(cfg: Any) -> str | None:
+    """Where a tool's job writes (its ``out_dir``, resolved as in the job), if it names one."""
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        out = cfg.get("out_dir")
+    except OmegaConfBaseException:  # interpolates what only the job knows
+        return None
+    return None if out is None else str(out)
 
 
 def _sweep_jobs(parsed: Sequence[Any]) -> list[list[str]]:

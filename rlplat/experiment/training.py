@@ -428,6 +428,12 @@ def warm_start_features(
 ) -> list[int] | range:
     """Check that ``state`` can start this run (:func:`warm_start`) and return the features
     of this run's observation its networks read: all, or a lone drone's in a team."""
+    if "agent" not in state:  # an actor alone: nothing to start the critics from
+        raise ConfigError(
+            f"init_from: {path} holds a policy alone (a controller file, no critics or "
+            "entropy coefficient), not a training checkpoint; give a run directory or its "
+            "checkpoints/*.pt"
+        )
     check_route_path(state, env, path, "init_from")
     saved, here = saved_interface(state), dict(interface)
     here.pop("route_path", None)  # checked above
