@@ -58,6 +58,16 @@ NEEDS = {
 }
 
 
+def test_a_reward_chosen_on_the_command_line_is_that_rewards_whatever_the_bundle():
+    # A bundle chooses its reward as a group (attacker_v13: shaped_capture_long), so a reward
+    # given on the command line replaces all of it: none of the bundle's weights stay.
+    sparse = compose_config("train", ["drone=attacker_v1", "reward=sparse"]).reward
+    for drone in ("attacker_v6", "attacker_v11", "attacker_v13"):
+        assert compose_config("train", [f"drone={drone}", "reward=sparse"]).reward == sparse
+    assert sparse.terms.ground_contact == -100.0
+    assert compose_config("train", []).reward.terms.ground_contact == -600.0  # the bundle's own
+
+
 @pytest.mark.parametrize("option", [None, *OPTIONS])
 def test_train_option_composes_and_validates(option):
     overrides = [option, *NEEDS.get(option, [])] if option else []
@@ -213,6 +223,7 @@ BAD_TRAIN = [
     (["dynamics.tau_xy=0"], "dynamics.tau_xy", "0"),
     (["dynamics.drag_z=-1"], "dynamics.drag_z", "-1"),
     (["dynamics.physics_dt=0.5"], "dynamics.physics_dt", "0.5"),  # > env.control_period
+    (["dynamics=quadrotor", "dynamics.physics_dt=0.1"], "dynamics.physics_dt", "too coarse"),
     (["+dynamics.max_tilt=0.5"], "dynamics.max_tilt", "valid: name, physics_dt"),
     (["dynamics=quadrotor", "dynamics.max_tilt=2"], "dynamics.max_tilt", "2"),
     (["dynamics=quadrotor", "dynamics.max_rotor_thrust=2"], "dynamics.max_rotor_thrust", "2"),
@@ -247,6 +258,10 @@ BAD_TRAIN = [
     (["scenario.n_train=-5"], "scenario.n_train", "-5"),
     (["algo.priority_alpha=1.5"], "algo.priority_alpha", "1.5"),
     (["algo.priority_beta=-0.1"], "algo.priority_beta", "-0.1"),
+    # an attacker's component for the defender: said before the scripted start it implies
+    (["drone=defender_v1", "action=guidance_law"], "action", "flies attackers; this run's"),
+    (["drone=defender_v1", "observation=pursuit_conform"], "observation", "reads the defender's"),
+    (["drone=defender_v1", "observation=pursuit_intercept"], "observation", "pursuit_intercept"),
 ]
 
 

@@ -252,3 +252,33 @@ def test_defender_trains_and_evaluates_through_the_cli(
     rows = ev.rows
     assert ev.summary["evasion_score"] == pytest.approx(sum(r["evasion"] for r in rows) / len(rows))
     assert all(r["evasion"] == 0.0 for r in rows if r["captured"])
+
+
+def test_the_controller_command_refuses_a_bad_out_and_writes_nothing_half(
+    defender_run, tmp_path, capsys, monkeypatch
+):
+    from rlplat.experiment.controller import main
+
+    run, _ = defender_run
+    a_file = run / "controller.pt"
+    for out, message in (
+        (tmp_path, f"error: out: {tmp_path} is a directory; name the controller file"),
+        (a_file / "x.pt", f"error: out: cannot write to {run / 'controller.pt'}: "),
+    ):
+        with pytest.raises(SystemExit):
+            main([str(run), str(out)])
+        assert capsys.readouterr().err.startswith(message)
+    # A card that cannot be made (the run's scenario set gone) leaves no controller file.
+    out = tmp_path / "x.pt"
+
+    def no_card(*args, **kwargs):
+        raise ConfigError("scenarios_dir: gone")
+
+    monkeypatch.setattr("rlplat.experiment.controller.make_card", no_card)
+    with pytest.raises(SystemExit):
+        main([str(run), str(out)])
+    assert not out.exists() and not out.with_suffix(".json").exists()
+    # from inside the run directory, the file still names the run
+    monkeypatch.chdir(run)
+    main([".", str(out), "--no-card"])
+    assert load_checkpoint(out)["source"]["run_dir"] == run.name

@@ -27,6 +27,21 @@ def test_paper_api_init_reset_step_close(scenarios):
     env.close()
 
 
+def test_any_seed_gymnasium_takes_restarts_the_walk(scenarios):
+    # Gymnasium takes any non-negative seed; the walk's generator a 64-bit word of it.
+    env = make_gym_env("env.scenario_order=shuffled", scenarios=scenarios.path)
+
+    def walk(seed):
+        return [env.reset(seed=seed)[1]["scenario_id"]] + [
+            env.reset()[1]["scenario_id"] for _ in range(5)
+        ]
+
+    big = walk(2**64 + 7)
+    assert big == walk(2**64 + 7) == walk(7)  # the same word: the same walk
+    assert walk(2**70 + 1) == walk(2**70 + 1)
+    env.close()
+
+
 def test_step_before_reset_is_refused_as_gymnasium_does(scenarios):
     env = make_gym_env(scenarios=scenarios.path)
     with pytest.raises(gym.error.ResetNeeded, match="before calling env.reset"):

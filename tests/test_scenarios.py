@@ -276,6 +276,8 @@ def test_load_returns_tensors_matching_files(make_spec, tmp_path):
         (("scenario.min_distance=nan",), r"scenario.min_distance: expected 1 finite numbers"),
         (("scenario.min_altitude=abc",), r"scenario.min_altitude: expected 1 numbers, got"),
         (("scenario.strategy_mix.nn=abc",), r"scenario.strategy_mix.nn: expected 1 numbers"),
+        # a string's characters are no list ('985' was read as [9, 8, 5])
+        (("scenario.vision_semi_axes='985'",), r"scenario.vision_semi_axes: expected 3 numbers"),
         (("scenario.routes=[5]",), r"scenario.routes\[0\]: expected a list of \[x, y, z\]"),
         (("scenario.routes=5",), r"scenario.routes: expected a list of routes"),
         # Starts on or under the ground would end (or not) at the first step.

@@ -81,7 +81,9 @@ class ScenarioSampler:
         self.seed(0)
 
     def seed(self, seed: int) -> None:
-        self.generator = torch.Generator().manual_seed(seed)
+        """Restart the walk from ``seed``, any integer (as a 64-bit word: torch's generators take
+        no more, and Gymnasium hands any non-negative one)."""
+        self.generator = torch.Generator().manual_seed(int(seed) % 2**64)
         self.queue = torch.empty(0, dtype=torch.int64)
 
     def set_weights(self, weights: Tensor | None) -> None:

@@ -16,8 +16,9 @@ from pathlib import Path
 from rlplat.agents.checkpoint import load_checkpoint, save_checkpoint
 from rlplat.agents.policies import policies_for
 from rlplat.cli import exit_on_error
+from rlplat.errors import ConfigError
 from rlplat.experiment.evaluation import evaluate_run, load_run_config
-from rlplat.io import atomic_write_text
+from rlplat.io import atomic_write_text, check_writable_dir
 
 log = logging.getLogger(__name__)
 
@@ -34,7 +35,7 @@ def export_controller(run_dir: str | Path, out: str | Path, ckpt: str = "best") 
         "interface": state["interface"],
         "config": {k: config[k] for k in ("drone", "observation", "action", "seed")},
         "source": {
-            "run_dir": run_dir.name,
+            "run_dir": run_dir.resolve().name,  # "." names the folder it is
             "checkpoint": ckpt,
             "frames": state["counters"]["frames"],
             "best": state["best"],
@@ -62,6 +63,20 @@ def write_card(run_dir: str | Path, out: str | Path, ckpt: str = "best", split: 
     """Evaluate the run's ``ckpt`` policy and the scripted baselines of its drone on ``split``
     (``rlplat.eval.evaluate_run``) and write the numbers next to the controller file, as
     ``<out>.json``. Returns the card."""
+    card = make_card(run_dir, out, ckpt, split)
+    save_card(card, out)
+    return card
+
+
+def save_card(card: dict, out: str | Path) -> None:
+    """Write ``card`` next to the controller file ``out``, as ``<out>.json``."""
+    path = Path(out).with_suffix(".json")
+    atomic_write_text(path, json.dumps(card, indent=2) + "\n")
+    log.info("wrote %s", path)
+
+
+def make_card(run_dir: str | Path, out: str | Path, ckpt: str = "best", split: str = "test"):
+    """The card of :func:`write_card`, not written."""
     role = load_run_config(run_dir).drone.learner
     policies = {"nn" if role == "defender" else "learned": "checkpoint"}
     policies.update({k: k for k in policies_for(role)})
@@ -84,10 +99,17 @@ def write_card(run_dir: str | Path, out: str | Path, ckpt: str = "best", split: 
         "scenario_digest": summary["scenario_digest"],
         split: results,
     }
-    path = Path(out).with_suffix(".json")
-    atomic_write_text(path, json.dumps(card, indent=2) + "\n")
-    log.info("wrote %s", path)
     return card
+
+
+def check_out(out: str | Path) -> Path:
+    """``out`` as a controller file that can be written (and its card beside it): a one-line
+    :class:`ConfigError` for a folder, or a place no file can be made, before any work."""
+    out = Path(out)
+    if out.is_dir():
+        raise ConfigError(f"out: {out} is a directory; name the controller file (e.g. {out}/x.pt)")
+    check_writable_dir(out.parent, "out")
+    return out
 
 
 @exit_on_error
@@ -101,9 +123,12 @@ def main(argv: list[str] | None = None) -> None:
     )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    export_controller(args.run_dir, args.out, args.ckpt)
-    if not args.no_card:
-        write_card(args.run_dir, args.out, args.ckpt)
+    out = check_out(args.out)
+    # The card's evaluations first: a run they cannot fly leaves no controller file behind.
+    card = None if args.no_card else make_card(args.run_dir, out, args.ckpt)
+    export_controller(args.run_dir, out, args.ckpt)
+    if card is not None:
+        save_card(card, out)
 
 
 if __name__ == "__main__":

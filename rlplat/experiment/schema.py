@@ -368,6 +368,16 @@ def _check_training(c: Mapping[str, Any]) -> None:
     problem = reward_role_problem(c["reward"]["terms"], learner)
     if problem is not None:  # training on it would learn the other side's game
         raise ConfigError(problem)
+    if learner != "attacker":  # the env refuses these too; said first, before what follows
+        if getattr(ACTIONS.get(c["action"].get("name")), "guided", False):
+            raise ConfigError("action: a guided action flies attackers; this run's learner is "
+                              f"the {learner} (valid: velocity)")  # fmt: skip
+        seen = OBSERVATIONS.get(c["observation"].get("name"))
+        if getattr(seen, "reads_conformity", False) or getattr(seen, "reads_intercept", False):
+            raise ConfigError(
+                f"observation: {c['observation']['name']} reads the defender's route as an "
+                f"attacker sees it; this run's learner is the {learner}"
+            )
     if c["scenarios_dir"] is None:  # the configured set: training flies all three splits
         for split in ("train", "val", "test"):
             n = c["scenario"].get(f"n_{split}")
@@ -445,6 +455,14 @@ def _check_env_fields(c: Mapping[str, Any], env_batch: int | None = None) -> Non
         raise ConfigError(
             f"dynamics.physics_dt: {dynamics['physics_dt']} s is longer than one control "
             f"period (env.control_period={env['control_period']} s)"
+        )
+    if "rate_gain" in dynamics and dynamics["physics_dt"] * dynamics["rate_gain"] > 1.0:
+        # the sub-step integrates the rate loop explicitly: too coarse a step overshoots and
+        # grows (at 0.1 s with the default gain of 25/s the drones fly twice their top speed)
+        raise ConfigError(
+            f"dynamics.physics_dt: {dynamics['physics_dt']} s is too coarse for the rate loop "
+            f"(dynamics.rate_gain={dynamics['rate_gain']}/s): at most 1 / rate_gain = "
+            f"{1.0 / dynamics['rate_gain']:.3g} s keeps the sub-step stable"
         )
     if "max_rotor_thrust" in dynamics:
         thrust, weight = dynamics["max_rotor_thrust"], dynamics["mass"] * dynamics["gravity"]

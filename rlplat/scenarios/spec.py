@@ -318,6 +318,8 @@ def _finite(v: Any, where: str) -> float:
 
 
 def _floats(v: Any, where: str, n: int) -> tuple[float, ...]:
+    if isinstance(v, (str, bytes)):  # its characters are no list of numbers ('985': 9, 8, 5)
+        raise ConfigError(f"{where}: expected {n} numbers, got {v!r}")
     try:
         out = tuple(float(x) for x in v)
     except (TypeError, ValueError):
