@@ -452,6 +452,23 @@ def test_a_simulator_whose_continue_answers_before_its_time_has_run_is_waited_fo
         env.close()
 
 
+def test_an_early_answering_simulator_without_simispaused_is_read_until_its_step_has_run(
+    scenarios, caplog
+):
+    # Nothing tells when the simulation pauses again: the drones are read until the step's
+    # sim time has run (within dynamics.timeout_s), not refused as a step of 0 s.
+    with TestServer(SETTINGS, realtime=True, continue_answers_at_once=True) as srv:
+        del srv._methods["simIsPaused"]
+        with caplog.at_level("WARNING", logger="rlplat.envs.airsim.client"):
+            env = airsim_env(scenarios, srv.address)
+            env.reset()
+            for _ in range(3):
+                env.rand_step()
+                assert env.dynamics.last_advance_s == pytest.approx(PERIOD, abs=1e-9)
+        assert caplog.text.count("has no simIsPaused") == 1
+        env.close()
+
+
 class _ReadBeforeItRan:
     """A client whose simContinueForTime answered at once and whose simulator was read before
     it ran (the drones as before the step, with a contact whose flag that read clears), then

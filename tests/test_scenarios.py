@@ -2,6 +2,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -686,3 +687,18 @@ def test_an_empty_split_keeps_the_drone_dimension(make_spec, tmp_path):
     assert manifest["quality"]["independence"]["independent"]
     val = ScenarioSet.load(tmp_path).split("val")
     assert val["attacker_start"].shape == (0, 2, 3) and val["route"].shape == (0, 2)
+
+
+def test_a_cache_that_cannot_be_written_names_rlplat_cache(tmp_path, monkeypatch):
+    # A run without scenarios_dir caches its set; a cache no set can be written to is the
+    # environment's RLPLAT_CACHE, not an out_dir the user never set.
+    from rlplat.experiment.config import compose_config
+    from rlplat.experiment.factory import resolve_scenarios
+
+    a_file = tmp_path / "file"
+    a_file.write_text("")
+    monkeypatch.setattr("rlplat.experiment.factory.CACHE_DIR", a_file)
+    cfg = compose_config("train", ["scenario.n_train=8", "scenario.n_val=4", "scenario.n_test=4"])
+    with pytest.raises(ConfigError, match=rf"^RLPLAT_CACHE: the configured scenario set is cached "
+                       rf"under {re.escape(str(a_file))}, and cannot write"):  # fmt: skip
+        resolve_scenarios(cfg, None)

@@ -712,3 +712,24 @@ def test_command_line_tools_run_with_the_suites_thread_count(run_python):
     res = run_python("-c", "import torch; print(torch.get_num_threads())")
     assert res.returncode == 0, res.stderr[-2000:]
     assert int(res.stdout) == torch.get_num_threads()
+
+
+def test_a_run_records_its_paths_absolute_and_reads_from_anywhere(
+    tmp_path, scenarios, tiny, monkeypatch
+):
+    # A path typed relative to where the run was launched: config.yaml records it absolute,
+    # so evaluate.py reads the run from another working directory.
+    from rlplat.experiment.evaluation import evaluate_run
+    from rlplat.experiment.training import train
+
+    monkeypatch.chdir(scenarios.path.parent)
+    run = tmp_path / "run"
+    train(compose_config("train", [*tiny, f"scenarios_dir={scenarios.path.name}"]), run_dir=run)
+    saved = OmegaConf.load(run / "config.yaml")
+    assert saved.scenarios_dir == str(scenarios.path)
+    assert load_checkpoint(run / "checkpoints" / "best.pt")["config"]["scenarios_dir"] == (
+        str(scenarios.path)
+    )
+    monkeypatch.chdir(tmp_path)
+    ev = evaluate_run(run, split="val", plots=False)
+    assert ev.summary["scenario_digest"] == scenarios.digest

@@ -73,7 +73,16 @@ def resolve_scenarios(
     path = CACHE_DIR / "scenarios" / key
     if not (path / "manifest.json").exists():
         log.info("generating the configured scenario set into %s", path)
-        write_scenario_set(spec, path)
+        try:
+            write_scenario_set(spec, path)
+        except ConfigError as e:  # not the user's out_dir: the cache, and how to move it
+            if not str(e).startswith("out_dir: "):
+                raise
+            raise ConfigError(
+                f"RLPLAT_CACHE: the configured scenario set is cached under {CACHE_DIR}, and "
+                f"{str(e).removeprefix('out_dir: ')} (set RLPLAT_CACHE to a writable folder, "
+                "or pass scenarios_dir=)"
+            ) from None
     return ScenarioSet.load(path)
 
 

@@ -9,9 +9,11 @@ of a :class:`Run` (what a run is made of) and its :class:`RunState` (what it has
 from __future__ import annotations
 
 import contextlib
+import copy
 import json
 import logging
 import math
+import os
 import random
 import time
 from dataclasses import asdict, dataclass
@@ -325,7 +327,7 @@ def checked_start(cfg: DictConfig, run_dir: Path | None, field: str = "hydra.run
     flown_attackers(cfg.env.attackers, scenarios)
     if cfg.scenarios_dir is not None:
         cfg = with_set_scenario(cfg, scenarios)
-    config = OmegaConf.to_container(cfg, resolve=True)
+    config = absolute_paths(OmegaConf.to_container(cfg, resolve=True))
     resume_state = None
     if run_dir is not None:
         check_run_dir(run_dir, cfg.resume, field)
@@ -389,8 +391,32 @@ def load_resume_state(run_dir: Path, config: dict[str, Any]) -> dict[str, Any]:
     """The run's ``last.pt``, after checking that this config is the one it was trained with
     (only the budget and speed settings may change on a resume, see ``check_resume``)."""
     state = load_checkpoint(run_dir / "checkpoints" / "last.pt")
-    check_resume(state["config"], config)
+    check_resume(absolute_paths(state["config"]), config)  # one saved as typed, as it flew
     return state
+
+
+#: The settings that name files: a run records them absolute, so that its config.yaml reads
+#: the same from any working directory (evaluate.py, export.py, a resume elsewhere).
+PATH_SETTINGS = (("scenarios_dir",), ("init_from",), ("env", "defender_network"),
+                 ("algo", "demonstrations"))  # fmt: skip
+
+
+def absolute_paths(config: dict[str, Any]) -> dict[str, Any]:
+    """``config`` (a resolved config as a dict) with every :data:`PATH_SETTINGS` path made
+    absolute against the working directory; a copy."""
+    out = copy.deepcopy(config)
+    for keys in PATH_SETTINGS:
+        node = out
+        for key in keys[:-1]:
+            node = node.get(key) if isinstance(node, dict) else None
+        if not isinstance(node, dict) or node.get(keys[-1]) is None:
+            continue
+        value = node[keys[-1]]
+        if isinstance(value, list):
+            node[keys[-1]] = [os.path.abspath(str(v)) for v in value]
+        else:
+            node[keys[-1]] = os.path.abspath(str(value))
+    return out
 
 
 def warm_start_state(cfg: DictConfig) -> tuple[Path, dict[str, Any]] | None:

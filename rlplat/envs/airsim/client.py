@@ -652,6 +652,11 @@ class AirSimClient:
                         self.address, _words(e))  # fmt: skip
             return None
 
+    @property
+    def tells_pause(self) -> bool:
+        """Whether the simulator answers ``simIsPaused`` (as far as asked so far)."""
+        return not self._no_is_paused
+
     def wait_paused(self, what: str) -> bool:
         """Wait until the simulation is paused again (``simIsPaused``), within ``timeout_s``:
         for a simulator whose ``simContinueForTime`` answers before its time has run. True if

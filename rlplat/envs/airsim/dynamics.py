@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from collections.abc import Mapping, Sequence
 from typing import Literal
 
@@ -51,6 +52,11 @@ log = logging.getLogger(__name__)
 
 #: What a step whose sim time differs from the control period does.
 TIME_MISMATCH = ("error", "warn")
+
+
+#: s of wall time the sim clock must stand still for a simulator that cannot say it is paused
+#: (no ``simIsPaused``) to count as paused short of a whole step (within the tolerance).
+STILL_S = 0.05
 
 
 class AirSimDynamics(DroneDynamics):
@@ -185,20 +191,40 @@ class AirSimDynamics(DroneDynamics):
         self.client.continue_for(period / self.clock_speed, f"a step of {period:g} s")
         before, what = self._timestamp_ns, f"the drones after a step of {period:g} s"
         self._timestamp_ns = self._read(what)
-        if (self._timestamp_ns - before) / 1e9 < period - self.step_tolerance_s:
-            self._read_again(what)
+        if self._short(before, period):
+            self._read_again(what, before, period)
         self._check_time(before, self._timestamp_ns, period)
 
-    def _read_again(self, what: str) -> None:
+    def _short(self, before: int, period: float) -> bool:
+        """Whether the last read is short of a step of ``period`` s from ``before`` (ns)."""
+        return (self._timestamp_ns - before) / 1e9 < period - self.step_tolerance_s
+
+    def _read_again(self, what: str, before: int, period: float) -> None:
         """After a read short of the period: a simulator whose ``simContinueForTime`` answers
         before its time has run (older AirSim) may have been read before it ran, and may be
-        paused again by the time ``simIsPaused`` is asked. Wait for the pause (where the
-        simulator tells) and read again; a collision either read reports counts (the
-        simulator clears the flag it reports)."""
+        paused again by the time ``simIsPaused`` is asked. Wait for the pause and read again;
+        a simulator that cannot say whether it is paused (no ``simIsPaused``) is read until
+        the step's time has run, within ``timeout_s``. A collision any read reports counts
+        (the simulator clears the flag it reports)."""
         self.client.wait_paused(what)
         hits = self.collided
         self._timestamp_ns = self._read(what)
-        self.collided = hits | self.collided
+        hits = hits | self.collided
+        if not getattr(self.client, "tells_pause", True):
+            now = time.monotonic()
+            deadline, last, since = now + self.client.timeout_s, self._timestamp_ns, now
+            while time.monotonic() < deadline:
+                ran = (self._timestamp_ns - before) / 1e9
+                if ran >= period - 1e-6:  # the whole step
+                    break
+                if not self._short(before, period) and time.monotonic() - since >= STILL_S:
+                    break  # within the tolerance, and the clock has stopped: paused there
+                time.sleep(0.001)
+                self._timestamp_ns = self._read(what)
+                hits = hits | self.collided
+                if self._timestamp_ns != last:
+                    last, since = self._timestamp_ns, time.monotonic()
+        self.collided = hits
 
     def _reset_internal(self, mask: Tensor) -> None:
         """Reset the simulation (every drone at rest), pause it, take control of the drones
