@@ -155,6 +155,7 @@ def check_command_line(
     swept = {o.get_key_element() for o in parsed if o.is_sweep_override()}
     field = "hydra.sweep.dir" if multirun else "hydra.run.dir"
     dirs: dict[Path, str] = {}  # each job's directory, and the job that has it
+    outs: dict[Path, str] = {}  # each tool job's out_dir, and the job that writes there
     for num, overrides in enumerate(jobs):
         cfg = _compose(config_name, overrides)
         job_dir = _job_dir(cfg, multirun, num if exact else None)
@@ -182,7 +183,7 @@ def check_command_line(
                     "${hydra.job.num}) gives each its own"
                 )
         if out is not None:
-            other = dirs.setdefault(Path(str(out)).resolve(), job)
+            other = outs.setdefault(Path(str(out)).resolve(), job)
             if other != job:  # the second job's files would replace the first's
                 raise ConfigError(
                     f"out_dir: the sweep's jobs {other} and {job} both write to {out}; give "
@@ -213,10 +214,13 @@ def _job_dir(cfg: Any, multirun: bool, num: int | None) -> Path | None:
 
 
 def _out_dir(cfg: Any) -> str | None:
-    """Where a tool's job writes (its ``out_dir``, resolved as in the job), if it names one."""
+    """Where a tool's job writes (its ``out_dir``, resolved as in the job), if it names one;
+    None for a folder of evaluations (``evaluate.py compare=true``: one per split and policy)."""
     from omegaconf.errors import OmegaConfBaseException
 
     try:
+        if cfg.get("compare"):
+            return None
         out = cfg.get("out_dir")
     except OmegaConfBaseException:  # interpolates what only the job knows
         return None
