@@ -414,6 +414,24 @@ def test_bad_arguments_are_refused_before_any_work(trained_run, kwargs, message)
     assert not (trained_run / "bad").exists()
 
 
+def test_compare_over_two_dynamics_says_which_row_flew_which(trained_run, tmp_path, caplog):
+    # evaluate.py compare=true dynamics=quadrotor beside the run's velocity evaluations: the
+    # quadrotor's summaries have no capture ceiling, which the bound tables used to index.
+    from rlplat.eval.compare import compare
+
+    out = tmp_path / "ev"
+    evaluate_run(trained_run, split="val", plots=False, eval_dir=out)
+    evaluate_run(
+        trained_run, split="val", plots=False, eval_dir=out, dynamics={"name": "quadrotor"}
+    )
+    with caplog.at_level("WARNING", logger="rlplat.eval.compare"):
+        table = compare(trained_run, "val", eval_dir=out, plots=False)
+    assert "| attacker_v4 (best) (velocity, 1 attacker) |" in table
+    assert "| attacker_v4 (best) (quadrotor, 1 attacker) |" in table
+    assert "compare: the evaluations fly 2 games" in caplog.text
+    assert "## Against the capture ceiling" in (out / "compare-val.md").read_text()
+
+
 def test_an_out_dir_that_is_a_run_is_refused_and_the_runs_summary_kept(trained_run):
     before = (trained_run / "summary.json").read_bytes()
     with pytest.raises(ConfigError, match=r"^out_dir: .* is a training run's directory; its "):

@@ -363,6 +363,13 @@ def test_against_refuses_an_unknown_reference_and_different_scenarios(tmp_path, 
     with caplog.at_level("WARNING", logger="rlplat.eval.pool"):  # a plain table says so
         pooled_rows([*runs, tmp_path / "s1"])
     assert "the evaluations flew 2 scenario sets (d0, d1)" in caplog.text
+    caplog.clear()
+    _headroom_evaluation(tmp_path, "q1", "best", "checkpoint", [1, 1, 0, 0, 1],
+                         dynamics="quadrotor")  # fmt: skip
+    with caplog.at_level("WARNING", logger="rlplat.eval.pool"):  # the command too, and dynamics
+        main([*map(str, runs), str(tmp_path / "s1"), str(tmp_path / "q1")])
+    assert "flew 2 scenario sets (d0, d1)" in caplog.text
+    assert "flew 2 dynamics (quadrotor, velocity)" in caplog.text
     _headroom_evaluation(tmp_path, "d0", "best", "checkpoint", [1, 1, 0, 0, 1], learner="defender")
     _headroom_evaluation(tmp_path, "d0", "pure_pursuit", "pure_pursuit", [1, 1, 0, 0, 1])
     with pytest.raises(ConfigError, match="a defender; the gain is an attacker's"):
@@ -445,3 +452,16 @@ def test_pool_tells_runs_launched_with_other_overrides_apart(tmp_path, caplog):
     with caplog.at_level("WARNING", logger="rlplat.eval.pool"):
         labels = [r["policy"] for r in pooled_rows([*runs, tmp_path / "x0"])]
     assert "attacker_v8 (best)" in labels and "have no record of their overrides" in caplog.text
+
+
+def test_a_gains_interval_stays_within_what_a_difference_of_fractions_can_be(tmp_path):
+    from rlplat.eval.pool import paired_rows
+
+    # Five scenarios: the law captures all but one, the run none: gain -0.8, and a normal
+    # interval of 1.96 standard errors would reach below -1.
+    _headroom_evaluation(tmp_path, "s0", "best", "checkpoint", [0, 0, 0, 0, 0])
+    _headroom_evaluation(tmp_path, "s0", "proportional_navigation", "proportional_navigation",
+                         [1, 1, 1, 1, 0])  # fmt: skip
+    (row,) = paired_rows([tmp_path / "s0"], "proportional_navigation")
+    assert row["gain"] == pytest.approx(-0.8)
+    assert row["ci95"][0] == -1.0 and row["ci95"][1] < -0.4

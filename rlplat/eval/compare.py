@@ -91,13 +91,28 @@ def load_summaries(
     return summaries
 
 
+def flown_as(summary: dict[str, Any]) -> tuple[Any, Any]:
+    """The game an evaluation flew besides its scenarios: its dynamics and team size."""
+    return summary.get("dynamics"), summary.get("attackers")
+
+
+def row_label(summary: dict[str, Any], mixed: bool) -> str:
+    """A policy's label, with its dynamics and team size where the evaluations mix them."""
+    if not mixed:
+        return policy_label(summary)
+    dynamics, attackers = flown_as(summary)
+    return f"{policy_label(summary)} ({dynamics}, {attackers} attacker{'s' * (attackers != 1)})"
+
+
 def table_rows(summaries: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """One row of :data:`COLUMNS` per evaluated policy."""
+    """One row of :data:`COLUMNS` per evaluated policy (labelled with its dynamics and team
+    size where the summaries fly several)."""
+    mixed = len({flown_as(s) for s in summaries}) > 1
     rows = []
     for s in summaries:
         rows.append(
             {
-                "policy": policy_label(s),
+                "policy": row_label(s, mixed),
                 "kind": "learned" if is_learned(s) else "scripted",
                 "scenarios": s["scenarios"],
                 "captured": s["captured"],
@@ -164,7 +179,7 @@ def _bound_table(
     scenarios the ``block`` bound covers, the bound, then each policy's capture rate there."""
 
     def cell(stats: dict[str, Any], key: str) -> str:
-        value = stats[block].get(key)
+        value = stats.get(block, {}).get(key)
         return "–" if value is None else f"{value:.3f}"
 
     def row(*cells: Any) -> str:
@@ -215,6 +230,12 @@ def compare(
         "each scenario once, deterministically.\n\n"
     )
     figure = f"\n\n![capture rate against speed ratio](compare-{split}.png)\n" if plots else "\n"
+    games = list(dict.fromkeys(flown_as(s) for s in summaries))
+    if len(games) > 1:  # e.g. evaluate.py compare=true dynamics=quadrotor beside velocity's
+        log.warning("compare: the evaluations fly %d games (dynamics, attackers: %s); the rows "
+                    "say which, and the bound tables hold the first's", len(games),
+                    ", ".join(f"{d}, {a}" for d, a in games))  # fmt: skip
+        summaries = [s for s in summaries if flown_as(s) == games[0]]
     ceiling = ceiling_table(summaries)
     if ceiling is not None:
         figure += (

@@ -60,18 +60,21 @@ def pooled_rows(run_dirs: list[Path], split: str = "test") -> list[dict[str, Any
     """Per policy (learned ones first, in the order met), the pooled outcome of its episodes.
     Evaluations of several scenario sets pool with a warning (``--headroom`` and ``--against``
     refuse them)."""
-    read = _read(run_dirs, split)
-    sets = sorted({str(s.get("scenario_digest"))[:12] for s in read[2]})
-    if len(sets) > 1:
-        log.warning(
-            "pool: the evaluations flew %d scenario sets (%s); the rows of policies flown on "
-            "different ones do not compare", len(sets), ", ".join(sets),
-        )  # fmt: skip
-    return _pooled(read)
+    return _pooled(_read(run_dirs, split))
 
 
 def _pooled(read: Evaluations) -> list[dict[str, Any]]:
-    episodes, runs, _ = read
+    """The plain table's rows; evaluations of several scenario sets, dynamics or team sizes
+    pool with a warning (``--headroom`` and ``--against`` refuse them)."""
+    episodes, runs, summaries = read
+    for key, what in (("scenario_digest", "scenario sets"), ("dynamics", "dynamics"),
+                      ("attackers", "team sizes")):  # fmt: skip
+        seen = sorted({str(s.get(key))[:12] for s in summaries})
+        if len(seen) > 1:
+            log.warning(
+                "pool: the evaluations flew %d %s (%s); the rows of policies flown on "
+                "different ones do not compare", len(seen), what, ", ".join(seen),
+            )  # fmt: skip
     return [_pool(label, runs[label], rows) for label, rows in episodes.items()]
 
 
@@ -340,7 +343,7 @@ def _paired(read: Evaluations, against: str) -> list[dict[str, Any]]:
             "against": against,
             "scenarios": d.size,
             "gain": float(d.mean()),
-            "ci95": (float(d.mean() - half), float(d.mean() + half)),
+            "ci95": _gain_interval(float(d.mean()), half),
             "sd": sd,
             "gained": int((d > 0).sum()),
             "lost": int((d < 0).sum()),
@@ -387,7 +390,12 @@ def _over_runs(gains: list[float]) -> dict[str, Any]:
     g = np.asarray(gains)
     sd = float(g.std(ddof=1))
     half = float(stats.t.ppf(0.975, g.size - 1)) * sd / np.sqrt(g.size)
-    return {"runs_sd": sd, "runs_ci95": (float(g.mean() - half), float(g.mean() + half))}
+    return {"runs_sd": sd, "runs_ci95": _gain_interval(float(g.mean()), half)}
+
+
+def _gain_interval(gain: float, half: float) -> tuple[float, float]:
+    """``gain`` +- ``half``, within [-1, 1]: a gain is a difference of capture fractions."""
+    return max(-1.0, gain - half), min(1.0, gain + half)
 
 
 def _per_scenario(rows: list[dict[str, str]]) -> dict[str, tuple[float, float | None]]:
