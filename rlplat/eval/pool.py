@@ -394,8 +394,9 @@ def _over_runs(gains: list[float]) -> dict[str, Any]:
 
 
 def _gain_interval(gain: float, half: float) -> tuple[float, float]:
-    """``gain`` +- ``half``, within [-1, 1]: a gain is a difference of capture fractions."""
-    return max(-1.0, gain - half), min(1.0, gain + half)
+    """``gain`` +- ``half``, within [-1, 1]: a gain is a difference of capture fractions (NaN,
+    for one scenario, stays NaN)."""
+    return float(np.clip(gain - half, -1.0, 1.0)), float(np.clip(gain + half, -1.0, 1.0))
 
 
 def _per_scenario(rows: list[dict[str, str]]) -> dict[str, tuple[float, float | None]]:
