@@ -55,11 +55,6 @@ def find_runs(sweep_dir: Path) -> list[Path]:
     return sorted(found)
 
 
-def overrides(run_dir: Path) -> list[str]:
-    """The run's Hydra overrides other than ``seed`` (``.hydra/overrides.yaml``)."""
-    return run_overrides(run_dir) or []
-
-
 def collect(sweep_dir: str | Path) -> tuple[dict[str, list[dict[str, Any]]], list[str]]:
     """Per variant, one record per run (``seed``, ``run_dir`` and the :data:`METRICS`), and the
     overrides every run shares. A variant is named by the overrides that set its runs apart
@@ -83,7 +78,7 @@ def collect(sweep_dir: str | Path) -> tuple[dict[str, list[dict[str, Any]]], lis
             "aggregate: %d job(s) of %s did not finish (no summary.json) and are left out: %s",
             len(unfinished), sweep_dir, ", ".join(unfinished),
         )  # fmt: skip
-    found = {run: overrides(run) for run in runs}
+    found = {run: run_overrides(run) or [] for run in runs}
     common = [o for o in found[runs[0]] if all(o in v for v in found.values())]
     groups: dict[str, list[dict[str, Any]]] = defaultdict(list)
     for run in runs:

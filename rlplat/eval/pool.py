@@ -67,8 +67,7 @@ def _pooled(read: Evaluations) -> list[dict[str, Any]]:
     """The plain table's rows; evaluations of several scenario sets, dynamics or team sizes
     pool with a warning (``--headroom`` and ``--against`` refuse them)."""
     episodes, runs, summaries = read
-    for key, what in (("scenario_digest", "scenario sets"), ("dynamics", "dynamics"),
-                      ("attackers", "team sizes")):  # fmt: skip
+    for key, what in GAMES:
         seen = sorted({str(s.get(key))[:12] for s in summaries})
         if len(seen) > 1:
             log.warning(
@@ -166,11 +165,18 @@ def _evaluations(path: Path, split: str) -> list[Path]:
     return paths
 
 
+#: What makes two evaluations' scenario ids one game: summary key, and what it is called.
+GAMES = (
+    ("scenario_digest", "scenario sets"),
+    ("attackers", "team sizes"),
+    ("dynamics", "dynamics"),
+)
+
+
 def _one_set(summaries: list[dict[str, Any]], option: str) -> None:
     """Refuse evaluations of different scenario sets, team sizes or dynamics: their scenario
     ids name different games."""
-    for key, what in (("scenario_digest", "scenario sets"), ("attackers", "team sizes"),
-                      ("dynamics", "dynamics")):  # fmt: skip
+    for key, what in GAMES:
         values = {s.get(key) for s in summaries}
         if len(values) > 1:
             raise ConfigError(
