@@ -78,9 +78,11 @@ def test_wraps_only_a_batch_of_one(scenarios):
 @pytest.mark.slow
 def test_stable_baselines3_sac_trains_unmodified(scenarios):
     from stable_baselines3 import SAC
+    from stable_baselines3.common.logger import Logger
 
     env = make_gym_env("env.time_limit=5", scenarios=scenarios.path)
     model = SAC("MlpPolicy", env, learning_starts=64, batch_size=32, seed=0, verbose=0)
+    model.set_logger(Logger(folder=None, output_formats=[]))  # SB3's own makes a /tmp folder
     model.learn(total_timesteps=200)
     action, _ = model.predict(env.reset(seed=0)[0], deterministic=True)
     assert env.action_space.contains(action)
