@@ -130,6 +130,16 @@ def test_export_writes_verified_artifacts_and_their_card(run, exported):
     model = onnx.load(str(out / "policy.onnx"))
     onnx.checker.check_model(model, full_check=True)
     assert model.graph.input[0].type.tensor_type.shape.dim[0].dim_param
+    # It says itself what it reads and where it came from, as ONNX Runtime reads it.
+    import onnxruntime
+
+    session = onnxruntime.InferenceSession(str(out / "policy.onnx"))
+    meta = session.get_modelmeta().custom_metadata_map
+    assert meta["rlplat.source_sha256"] == card["source"]["sha256"]
+    assert meta["rlplat.scenario_digest"] == card["source"]["scenario_digest"]
+    assert (meta["rlplat.drone"], meta["rlplat.learner"]) == ("attacker_v3", "attacker")
+    interface = {k: v for k, v in card["interface"].items() if k != "c_api"}
+    assert json.loads(meta["rlplat.interface"]) == interface
     # The C header declares exactly the API.
     header = (out / "policy.h").read_text()
     assert "#define RLPLAT_OBS_DIM  9" in header and "#define RLPLAT_ACT_DIM  3" in header

@@ -25,7 +25,7 @@ import math
 import re
 import textwrap
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -216,9 +216,11 @@ def _quiet_exporter():
             logger.setLevel(level)
 
 
-def onnx_bytes(actor: DeterministicActor) -> bytes:
+def onnx_bytes(actor: DeterministicActor, metadata: Mapping[str, str] | None = None) -> bytes:
     """``actor`` as a serialised ONNX model with a dynamic batch dimension, checked with the
     ONNX checker (full check: shapes inferred); two exports of one network are byte-identical.
+    ``metadata`` becomes the model's ``metadata_props`` (what ONNX Runtime's
+    ``get_modelmeta().custom_metadata_map`` reads), in key order.
     """
     import onnx
 
@@ -238,6 +240,8 @@ def onnx_bytes(actor: DeterministicActor) -> bytes:
     model = program.model_proto
     # What varies with where and how the exporter ran (source paths, stack traces) goes.
     del model.metadata_props[:]
+    for key, value in sorted((metadata or {}).items()):
+        model.metadata_props.add(key=key, value=value)
     model.doc_string = model.graph.doc_string = ""
     for node in model.graph.node:
         del node.metadata_props[:]

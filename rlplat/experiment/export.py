@@ -4,7 +4,9 @@
 writes ``<run_dir>/export/<ckpt>/`` (or ``out_dir``):
 
 - ``policy.onnx``: the deterministic actor (observation scaling, MLP, squashed and clamped
-  mean), dynamic batch dimension, checked with the ONNX checker;
+  mean), dynamic batch dimension, checked with the ONNX checker; its metadata names the drone,
+  the source checkpoint's sha256, the scenario digest and the card's interface
+  (:func:`onnx_metadata`), so the file alone says what it reads and where it came from;
 - ``policy.h``, ``policy.c``: the same network in C99 (``rlplat_policy(obs, action)``);
 - ``card.json``: interface (observation and action layout, units, scales), network, source
   checkpoint sha256, scenario digest, the equivalence of torch, ONNX Runtime and C on the
@@ -315,6 +317,21 @@ def host_models(env) -> dict[str, dict[str, Any]]:
     return models
 
 
+def onnx_metadata(src: Source, interface: dict[str, Any]) -> dict[str, str]:
+    """The ONNX model's metadata (``rlplat.*`` keys, string values): the drone and its role,
+    the source checkpoint's sha256, the scenario digest it was trained on (empty if not
+    recorded) and the card's ``interface`` as JSON (sorted keys): nothing that depends on
+    where or when the export ran."""
+    return {
+        "rlplat.format_version": "1",
+        "rlplat.drone": str(src.cfg.drone.name),
+        "rlplat.learner": str(src.cfg.drone.learner),
+        "rlplat.source_sha256": src.sha256,
+        "rlplat.scenario_digest": src.scenario_digest or "",
+        "rlplat.interface": json.dumps(interface, sort_keys=True),
+    }
+
+
 def interface_card(src: Source, env, actor: DeterministicActor, features) -> dict[str, Any]:
     """What the artifacts read and write, feature by feature, and who calls them."""
     action = {
@@ -453,7 +470,8 @@ def export_run(
 
     # The artifacts, in memory.
     features = env.obs_fn.features()
-    model = onnx_bytes(actor)
+    interface = interface_card(src, env, actor, features)
+    model = onnx_bytes(actor, onnx_metadata(src, interface))
     header, source = c_sources(actor, describe_lines(src, env, features), action_line(env), prefix)
 
     # Equivalence: torch, ONNX Runtime and C on every observation.
@@ -498,7 +516,7 @@ def export_run(
             "learner": src.cfg.drone.learner,
             "scenario_digest": src.scenario_digest,
         },
-        "interface": {**interface_card(src, env, actor, features), "c_api": c_api(prefix)},
+        "interface": {**interface, "c_api": c_api(prefix)},
         "network": network_card(actor, src.state),
         "files": files_card,
         "equivalence": {
