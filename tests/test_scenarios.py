@@ -281,6 +281,10 @@ def test_load_returns_tensors_matching_files(make_spec, tmp_path):
         (("scenario.vision_semi_axes='985'",), r"scenario.vision_semi_axes: expected 3 numbers"),
         (("scenario.routes=[5]",), r"scenario.routes\[0\]: expected a list of \[x, y, z\]"),
         (("scenario.routes=5",), r"scenario.routes: expected a list of routes"),
+        (
+            ("scenario.routes=[[[1,0,10],[2,0,10]],[[0,1,10]]]",),
+            r"scenario.routes: all routes need the same number of setpoints, got \[2, 1\]",
+        ),
         # Starts on or under the ground would end (or not) at the first step.
         (("scenario.min_altitude=0",), r"scenario.min_altitude: starts are above the ground"),
         (
@@ -295,6 +299,12 @@ def test_load_returns_tensors_matching_files(make_spec, tmp_path):
         (
             ("scenario.params.defender_z.high=1e6", "scenario.params.defender_z.resolution=0.01"),
             r"makes more than 10,000,000 values in \[low=6, high=1e\+06\]; at least 0.09999",
+        ),
+        # A billion bins used to allocate gigabytes for the report.
+        (("scenario.quality_bins=0",), r"scenario.quality_bins: must be in \[1, 10000\], got 0"),
+        (
+            ("scenario.quality_bins=1000000000",),
+            r"scenario.quality_bins: must be in \[1, 10000\], got 1000000000",
         ),
         (
             ("scenario.params.defender_z.std=-1",),
@@ -679,6 +689,15 @@ def test_two_vs_one_scenario_config_is_pursuit_with_two_attackers(make_spec):
     two = make_spec("scenario=pursuit_2v1")
     assert (two.attackers, two.defenders) == (2, 1)
     assert dataclasses.replace(two, attackers=1) == make_spec()
+
+
+def test_a_set_of_one_split_reports_no_pair_to_compare(make_spec, tmp_path):
+    spec = make_spec("scenario.n_train=50", "scenario.n_val=0", "scenario.n_test=0")
+    quality = write_scenario_set(spec, tmp_path)["quality"]
+    assert all(not by_pair for by_pair in quality["representativeness"]["ks"].values())
+    text = format_quality(quality)
+    assert "representativeness    one non-empty split: no pair to compare" in text
+    assert "KS " not in text and "chi2 " not in text
 
 
 def test_an_empty_split_keeps_the_drone_dimension(make_spec, tmp_path):

@@ -119,16 +119,21 @@ def format_quality(quality: dict[str, Any]) -> str:
     if len(comp["missing"]) > 20:
         lines.append(f"  ... and {len(comp['missing']) - 20} more")
     rep = quality["representativeness"]
-    pairs = sorted({p for v in rep["ks"].values() for p in v})
-    width = max([18, *(len(n) for t in (rep["ks"], rep["chi2"]) for n in t)])  # column names
-    header = f"{'representativeness':<22}" + "".join(f"{p:>22}" for p in pairs)
-    lines += [header, f"{'  (stat / p-value)':<22}" + "".join(f"{'':>22}" for _ in pairs)]
-    for test, table in (("KS", rep["ks"]), ("chi2", rep["chi2"])):
-        for name, by_pair in table.items():
-            cells = "".join(
-                f"{by_pair[p]['statistic']:>11.4f} / {by_pair[p]['pvalue']:<8.4f}" for p in pairs
-            )
-            lines.append(f"  {test:<4} {name:<{width}}{cells}")
+    tables = (("KS", rep["ks"]), ("chi2", rep["chi2"]))
+    pairs = sorted({p for _, table in tables for v in table.values() for p in v})
+    if not pairs:  # a single non-empty split: nothing to set it against
+        lines.append(f"{'representativeness':<22}one non-empty split: no pair to compare")
+    else:
+        width = max([18, *(len(n) for _, table in tables for n in table)])  # column names
+        lines.append(f"{'representativeness':<22}" + "".join(f"{p:>22}" for p in pairs))
+        lines.append(f"{'  (stat / p-value)':<22}" + "".join(f"{'':>22}" for _ in pairs))
+        for test, table in tables:
+            for name, by_pair in table.items():
+                cells = "".join(
+                    f"{by_pair[p]['statistic']:>11.4f} / {by_pair[p]['pvalue']:<8.4f}"
+                    for p in pairs
+                )
+                lines.append(f"  {test:<4} {name:<{width}}{cells}")
     ind = quality["independence"]
     lines.append(
         f"independence      {'independent' if ind['independent'] else 'DUPLICATES'}  "

@@ -55,6 +55,9 @@ class ParamSpec:
         return math.floor((self.high - self.low) / self.resolution + 1e-9) + 1
 
 
+#: The most ``quality_bins``: bins per column of the completeness check (each bin's count is
+#: reported; a billion of them took gigabytes before a set was written).
+MAX_QUALITY_BINS = 10_000
 #: Default ``defender_spread``: x and y offset of an extra defender from the first one, m.
 DEFAULT_DEFENDER_SPREAD = ParamSpec(low=-15.0, high=15.0, resolution=0.5)
 #: Fields ``from_dict`` accepts but does not require, and ``to_dict`` omits for 1 vs 1.
@@ -190,8 +193,10 @@ class ScenarioSpec:
                 f"ellipsoid (largest semi-axis {max(axes)} m)"
             )
         bins = _int(raw["quality_bins"], f"{where}.quality_bins")
-        if bins < 1:
-            raise ConfigError(f"{where}.quality_bins: must be >= 1, got {bins}")
+        if not 1 <= bins <= MAX_QUALITY_BINS:
+            raise ConfigError(
+                f"{where}.quality_bins: must be in [1, {MAX_QUALITY_BINS}], got {bins}"
+            )
 
         params_raw = dict(raw["params"] or {})
         if set(params_raw) != set(PARAM_NAMES):
