@@ -414,6 +414,15 @@ def test_route_labels_name_each_routes_direction_also_for_one_setpoint():
     assert route_labels(two) == ["+X", "-Y"]
     one = torch.tensor([[[-3.0, -4.0, 10.0]], [[50.0, 2.0, 10.0]]])  # from the origin
     assert route_labels(one) == ["-Y", "+X"]
+    # A loop back to its start goes where its farthest setpoint is (it was "+X" whatever
+    # its shape); a route that stays over its start has no horizontal direction.
+    loops = torch.tensor(
+        [
+            [[0.0, 0.0, 10.0], [3.0, -20.0, 10.0], [-2.0, -30.0, 10.0], [0.0, 0.0, 10.0]],
+            [[1.0, 1.0, 10.0], [1.0, 1.0, 20.0], [1.0, 1.0, 30.0], [1.0, 1.0, 10.0]],
+        ]
+    )
+    assert route_labels(loops) == ["-Y", "Z"]
 
 
 def test_pool_tells_runs_launched_with_other_overrides_apart(tmp_path, caplog):

@@ -26,10 +26,19 @@ from rlplat.scenarios import STRATEGIES, ScenarioSet
 
 def route_labels(routes: torch.Tensor) -> list[str]:
     """A direction per route, its first setpoint to its last (the origin, where a defender
-    starts, to a route of one setpoint): ``+X``, ``-X``, ``+Y`` or ``-Y``."""
+    starts, to a route of one setpoint): ``+X``, ``-X``, ``+Y`` or ``-Y``. A route that ends
+    where it starts (a loop) takes the direction to its setpoint farthest from the start, and
+    one that never leaves its start's vertical is ``Z``."""
     out = []
     for route in routes:
-        end = route[-1, :2] - (route[0, :2] if len(route) > 1 else 0.0)
+        start = route[0, :2] if len(route) > 1 else torch.zeros(2, dtype=route.dtype)
+        away = route[:, :2] - start
+        end = away[-1]
+        if end.norm() < 1e-6:  # a loop: the farthest setpoint says where it goes
+            end = away[int(away.norm(dim=1).argmax())]
+        if end.norm() < 1e-6:
+            out.append("Z")
+            continue
         axis = int(end.abs().argmax())
         out.append(("+" if end[axis] >= 0 else "-") + "XY"[axis])
     return out
