@@ -518,6 +518,26 @@ def test_a_bad_command_line_is_one_line_before_hydra_starts(argv, line):
     assert str(e.value).startswith(line) and "\n" not in str(e.value)
 
 
+def test_a_config_dir_of_ones_own_groups_is_checked_with_them(tmp_path):
+    # --config-dir adds a user's own options to the groups; the check composes with them, as
+    # Hydra will (it used to skip the check, so a bad value surfaced inside the run).
+    (tmp_path / "drone").mkdir()
+    (tmp_path / "drone" / "my_drone.yaml").write_text(
+        "# @package _global_\ndefaults:\n  - attacker_v3\ndrone:\n  name: my_drone\n"
+    )
+    seen = []
+    check_command_line("train", ["--config-dir", str(tmp_path), "drone=my_drone"], seen.append)
+    assert [c.drone.name for c in seen] == ["my_drone"]
+    with pytest.raises(ConfigError, match=r"^env.capture_radius: must be a finite number > 0"):
+        check_command_line(
+            "train",
+            ["--config-dir", str(tmp_path), "drone=my_drone", "env.capture_radius=-1"],
+            validate_train_config,
+        )
+    with pytest.raises(ConfigError, match=r"^drone=nope: no such option \(valid: .*my_drone"):
+        check_command_line("train", ["-cd", str(tmp_path), "drone=nope"], seen.append)
+
+
 def test_every_job_of_a_sweep_is_checked():
     seen = []
     check_command_line("train", ["-m", "seed=0,1,2", "algo=sac,sac_paper"], seen.append)

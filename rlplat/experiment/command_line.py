@@ -117,7 +117,6 @@ def check_command_line(
             "shell_completion",
             "config_path",
             "config_name",
-            "config_dir",
             "experimental_rerun",
         )  # fmt: skip
     ):
@@ -126,6 +125,13 @@ def check_command_line(
         parsed = OverridesParser.create().parse_overrides(args.overrides)
     except OverrideParseException as e:
         raise ConfigError(f"{e.override}: {_one_line(e.message)}") from None
+    extra: list[str] = []  # --config-dir DIR: its groups are composed as Hydra will
+    if args.config_dir is not None:
+        if not os.path.isdir(args.config_dir) or any(
+            o.get_key_element() == "hydra.searchpath" for o in parsed
+        ):
+            return  # a missing dir is Hydra's to refuse; a search path of its own too
+        extra = [f"hydra.searchpath=[file://{os.path.abspath(args.config_dir)}]"]
     if args.cfg:
         validate = validate_job = None  # show the config, however incomplete; keys still count
     cluster = any(  # conf/hydra/launcher/cluster.yaml submits with SLURM's sbatch
@@ -157,7 +163,7 @@ def check_command_line(
     dirs: dict[Path, str] = {}  # each job's directory, and the job that has it
     outs: dict[Path, str] = {}  # each tool job's out_dir, and the job that writes there
     for num, overrides in enumerate(jobs):
-        cfg = _compose(config_name, overrides)
+        cfg = _compose(config_name, [*overrides, *extra])
         job_dir = _job_dir(cfg, multirun, num if exact else None)
         job = " ".join(o for o in overrides if o.split("=", 1)[0] in swept)
         out = _out_dir(cfg) if multirun and job_dir is not None else None
