@@ -1,8 +1,10 @@
 """Export: a trained policy leaves as ONNX and C99, verified against the torch actor on rollout
 observations, timed, and flown through the evaluator (``policy=onnx``, ``policy=c``)."""
 
+import itertools
 import json
 import logging
+import math
 import shutil
 import subprocess
 import sys
@@ -440,6 +442,57 @@ def test_a_guided_controller_exports_with_its_guidance(
         with caplog.at_level(logging.WARNING), pytest.raises(ConfigError) as e:
             export_run(run, ckpt=str(shipped_path(SHIPPED_DEFENDER)), **QUICK)
         assert _one_line(e).startswith("ckpt: ") and not caplog.records, caplog.text
+
+
+def _path_from_the_card(p, v, speed, t, lag, gain, acceptance):
+    """ROUTE_PATH_FORMULA, step by step as the card words it, in plain Python."""
+    n_legs = len(p) - 1
+    d = [max(abs(p[i][k] - p[i - 1][k]) for k in range(3)) for i in range(1, n_legs + 1)]
+    lags = [lag if di > 0 else 0.0 for di in d]
+    first = [p[1][k] - p[0][k] for k in range(3)]
+    axis = max(range(3), key=lambda k: (abs(first[k]), -k))  # the first longest axis
+    u = v[axis] * math.copysign(1.0, first[axis]) if first[axis] else 0.0
+    lags[0] *= min(max(1 - u / speed, 0.0), 1.0)
+    near = max(speed / gain, acceptance)
+    approach = [
+        0.0
+        if math.isinf(gain)
+        else max(0.0, max(di - near, 0) / speed
+                 + math.log(max(min(di, near), acceptance) / acceptance) / gain - di / speed)
+        for di in d
+    ]  # fmt: skip
+    arrive = list(itertools.accumulate(lags[i] + d[i] / speed + approach[i] for i in range(n_legs)))
+    leg = next((i for i in range(n_legs) if arrive[i] > t), n_legs - 1)
+    start = (arrive[leg - 1] if leg else 0.0) + lags[leg]
+    a, b = p[leg], p[leg + 1]
+    flown = max(t - start, 0.0) * speed
+    return [a[k] + math.copysign(min(abs(b[k] - a[k]), flown), b[k] - a[k]) for k in range(3)]
+
+
+@pytest.mark.parametrize("gain", [1.0, math.inf])
+def test_the_cards_route_path_formula_is_the_path_the_law_flies(gain):
+    # A host computes the meeting point's path from the card alone: its formula, followed
+    # step by step, gives the positions rlplat.envs.kinematics.route_path gives.
+    from rlplat.envs.kinematics import SetpointFlight, route_path
+    from rlplat.experiment.export import ROUTE_PATH_FORMULA
+
+    assert "ln(max(min(d_i, n), acceptance) / acceptance)" in ROUTE_PATH_FORMULA
+    flight = SetpointFlight(0.9, gain, 1.0 if math.isfinite(gain) else 0.0)
+    gen = torch.Generator().manual_seed(0)
+    times = torch.linspace(0.0, 60.0, 97, dtype=torch.float64)
+    for _ in range(20):
+        position = torch.rand(3, generator=gen, dtype=torch.float64) * 20 - 10
+        route = torch.rand(5, 3, generator=gen, dtype=torch.float64) * 60 - 30
+        route[-1] = route[-2]  # a route flown to its end repeats its last setpoint
+        velocity = torch.rand(3, generator=gen, dtype=torch.float64) * 6 - 3
+        speed = float(torch.rand((), generator=gen)) * 4 + 1
+        got = route_path(position, route, torch.tensor(speed, dtype=torch.float64), times,
+                         velocity=velocity, flight=flight)  # fmt: skip
+        points = [position.tolist(), *route.tolist()]
+        for t, row in zip(times.tolist(), got.tolist(), strict=True):
+            want = _path_from_the_card(points, velocity.tolist(), speed, t, flight.lag,
+                                       flight.gain, flight.acceptance)  # fmt: skip
+            assert row == pytest.approx(want, abs=1e-5), t  # float32 lags in route_path
 
 
 def test_implementations_that_differ_fail_the_export_and_write_nothing(run, tmp_path):

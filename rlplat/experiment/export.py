@@ -276,6 +276,22 @@ def network_card(actor: DeterministicActor, state: dict[str, Any]) -> dict[str, 
     }
 
 
+#: :func:`rlplat.envs.kinematics.route_path` as a formula, with the card's ``lag``, ``gain``,
+#: ``acceptance`` (tests/test_export.py computes it from this text's steps).
+ROUTE_PATH_FORMULA = (
+    "p_0 = the defender's position, p_1..p_S its route's setpoints from its current one on "
+    "(the last repeated to S), V its maximum speed per axis; leg i runs from p_(i-1) to p_i. "
+    "d_i = max over axes of |p_i - p_(i-1)|; lag_i = lag if d_i > 0 else 0, and lag_1 is "
+    "multiplied by clamp(1 - u / V, 0, 1), u the defender's velocity on leg 1's longest axis "
+    "(the first such axis), signed towards p_1; approach_i = 0 if gain is infinite, else "
+    "max(0, max(d_i - n, 0) / V + ln(max(min(d_i, n), acceptance) / acceptance) / gain - "
+    "d_i / V) with n = max(V / gain, acceptance); arrive_i = sum over j <= i of (lag_j + "
+    "d_j / V + approach_j), arrive_0 = 0; start_i = arrive_(i-1) + lag_i. At time t the leg "
+    "flown is the first i with arrive_i > t (leg S past every arrival) and the position is, "
+    "per axis, p_(i-1) + sign(p_i - p_(i-1)) * min(|p_i - p_(i-1)|, max(t - start_i, 0) * V)"
+)
+
+
 def host_models(env) -> dict[str, dict[str, Any]]:
     """What the caller computes itself for the observation and the law, with its numbers: the
     meeting point's route path and the route conformity features (none for other drones)."""
@@ -288,6 +304,7 @@ def host_models(env) -> dict[str, dict[str, Any]]:
             "point is its earliest point the attacker reaches at full speed per axis after "
             "start_lag s, within horizon s from now (rlplat.envs.kinematics.route_intercept)",
             **path,
+            "path": ROUTE_PATH_FORMULA,
             "horizon": env.meeting_horizon,  # the seconds searched (a null setting: the limit)
             "resolution_s": ROUTE_RESOLUTION,  # the instants tried: every resolution_s s
             "reach_m": env.capture_radius,  # a point within this of the attacker's reach counts
