@@ -2,8 +2,10 @@ import csv
 import functools
 import json
 import logging
+import os
 import shutil
 import time
+from pathlib import Path
 
 import pytest
 import torch
@@ -712,6 +714,18 @@ def test_command_line_tools_run_with_the_suites_thread_count(run_python):
     res = run_python("-c", "import torch; print(torch.get_num_threads())")
     assert res.returncode == 0, res.stderr[-2000:]
     assert int(res.stdout) == torch.get_num_threads()
+
+
+def test_a_job_hydra_moves_into_its_run_reads_paths_where_they_were_typed(
+    tmp_path, scenarios, tiny, train_cli
+):
+    # hydra.job.chdir=true runs the job in its run directory; a relative scenarios_dir is
+    # still where the command was typed (the repository root here), as Hydra users expect.
+    run = tmp_path / "run"
+    typed = os.path.relpath(scenarios.path, Path(__file__).resolve().parent.parent)
+    res = train_cli(*tiny, f"scenarios_dir={typed}", "hydra.job.chdir=true", f"hydra.run.dir={run}")
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert OmegaConf.load(run / "config.yaml").scenarios_dir == str(scenarios.path)
 
 
 def test_a_run_records_its_paths_absolute_and_reads_from_anywhere(

@@ -322,6 +322,7 @@ def checked_start(cfg: DictConfig, run_dir: Path | None, field: str = "hydra.run
     yet) and, with ``resume``, its checkpoint against this config, ``init_from`` and
     ``algo.demonstrations``."""
     validate_train_config(cfg)
+    cfg = with_absolute_paths(cfg)  # hydra.job.chdir=true moves the job, not its paths
     scenarios = resolve_scenarios(cfg, cfg.scenarios_dir)
     require_scenarios(scenarios, SPLITS, "training")  # it validates, and tests at its end
     flown_attackers(cfg.env.attackers, scenarios)
@@ -401,9 +402,24 @@ PATH_SETTINGS = (("scenarios_dir",), ("init_from",), ("env", "defender_network")
                  ("algo", "demonstrations"))  # fmt: skip
 
 
+def launch_dir() -> str:
+    """Where the command was started: Hydra's ``runtime.cwd`` inside a job (whose working
+    directory ``hydra.job.chdir=true`` moves into the run), else the working directory."""
+    from hydra.core.hydra_config import HydraConfig
+
+    return HydraConfig.get().runtime.cwd if HydraConfig.initialized() else os.getcwd()
+
+
+def _absolute(value: Any) -> str | list[str]:
+    """A path (or a list of paths) made absolute against :func:`launch_dir`."""
+    if isinstance(value, (list, tuple)) or OmegaConf.is_list(value):
+        return [_absolute(v) for v in value]
+    return os.path.abspath(os.path.join(launch_dir(), str(value)))
+
+
 def absolute_paths(config: dict[str, Any]) -> dict[str, Any]:
     """``config`` (a resolved config as a dict) with every :data:`PATH_SETTINGS` path made
-    absolute against the working directory; a copy."""
+    absolute against :func:`launch_dir`; a copy."""
     out = copy.deepcopy(config)
     for keys in PATH_SETTINGS:
         node = out
@@ -411,12 +427,20 @@ def absolute_paths(config: dict[str, Any]) -> dict[str, Any]:
             node = node.get(key) if isinstance(node, dict) else None
         if not isinstance(node, dict) or node.get(keys[-1]) is None:
             continue
-        value = node[keys[-1]]
-        if isinstance(value, list):
-            node[keys[-1]] = [os.path.abspath(str(v)) for v in value]
-        else:
-            node[keys[-1]] = os.path.abspath(str(value))
+        node[keys[-1]] = _absolute(node[keys[-1]])
     return out
+
+
+def with_absolute_paths(cfg: DictConfig) -> DictConfig:
+    """``cfg`` with every :data:`PATH_SETTINGS` path absolute against :func:`launch_dir`
+    (a path on the command line is where the user typed it); a copy."""
+    cfg = copy.deepcopy(cfg)
+    for keys in PATH_SETTINGS:
+        key = ".".join(keys)
+        value = OmegaConf.select(cfg, key)
+        if value is not None:
+            OmegaConf.update(cfg, key, _absolute(value), merge=False)
+    return cfg
 
 
 def warm_start_state(cfg: DictConfig) -> tuple[Path, dict[str, Any]] | None:
