@@ -502,6 +502,8 @@ def test_a_read_before_the_simulator_ran_is_read_again_and_keeps_its_collision(s
         td = env.rand_step(env.reset())
         assert env.dynamics.last_advance_s == pytest.approx(PERIOD, abs=1e-9)
         assert env.dynamics.collided.tolist() == [[True, False]]  # the first read's contact
+        assert td["next", "collided"].tolist() == [[True, False]]  # and the step's output's
+        assert td["collided"].tolist() == [[False, False]]  # placed at the reset: cleared
         assert not torch.equal(td["next", "positions"], td["positions"])
         env.close()
 

@@ -186,8 +186,10 @@ class PursuitEnv(EnvBase):
         ``max_speed`` (N, k + m) m/s per axis,
         ``waypoint`` (N, m) the index of each defender's next setpoint, ``setpoints`` (N, m, 3)
         m its position (the last one once the route is flown), ``route_done`` (N, m) bool the
-        whole route flown, ``scenario_index`` (N, 1) row of the split. The drone-indexed
-        entries are all the scripted policies read (:mod:`rlplat.agents.policies`).
+        whole route flown, ``scenario_index`` (N, 1) row of the split; with dynamics that
+        report contacts (AirSim's), ``collided`` (N, k + m) bool, during the last step. The
+        drone-indexed entries are all the scripted policies read
+        (:mod:`rlplat.agents.policies`).
     Action:
         ``action`` (N, action.dim), or ``(group, "action")`` (N, K, action.dim), in [-1, 1],
         mapped by the action component.
@@ -312,6 +314,8 @@ class PursuitEnv(EnvBase):
         if problem is not None:
             log.warning("%s", problem)
         self.dynamics = dynamics
+        # A simulator that reports contacts (AirSim): its flags go out with every state.
+        self._reports_collisions = isinstance(getattr(dynamics, "collided", None), Tensor)
         self.obs_fn, self.action_fn, self.reward_fn = observation, action, reward
         # Drones: attackers first, then defenders; the learner's role is its team.
         self.learner = ROLES.index(learner)
@@ -430,6 +434,8 @@ class PursuitEnv(EnvBase):
             shape=(n,),
             device=self.device,
         )
+        if self._reports_collisions:  # per drone, in the order of positions
+            self.observation_spec["collided"] = flag(self.num_attackers + m)
         action = Bounded(
             -1.0, 1.0, shape=(n, t, self.action_fn.dim), dtype=torch.float32, device=self.device
         )
@@ -860,6 +866,8 @@ class PursuitEnv(EnvBase):
             "scenario_index": self.scenario_index.unsqueeze(-1),
             **extra,
         }
+        if self._reports_collisions:  # what the simulator reported during the last step
+            out["collided"] = self.dynamics.collided.clone()
         if self.group is None:
             out.update({k: x[:, 0] for k, x in team.items()})
         else:

@@ -20,9 +20,9 @@ endpoint (N = 1: an env batch of several simulators is a TorchRL ``ParallelEnv``
   position and velocity.
 
 Frames are converted only through :mod:`rlplat.envs.airsim.frames`. ``collided`` (N, D) bool
-holds which drones the simulator reported a collision for during the last step (logged; a
-capture stays the env's distance test). The client library is imported when the first
-simulator is connected, not when this module is.
+holds which drones the simulator reported a collision for during the last step (logged, and
+the env's ``collided`` entry; a capture stays the env's distance test). The client library is
+imported when the first simulator is connected, not when this module is.
 """
 
 from __future__ import annotations
