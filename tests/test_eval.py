@@ -102,7 +102,7 @@ def test_hovering_defender_is_captured_at_the_computed_time(tmp_path):
     rows = episode_rows(results, sset, "test", env.routes)
     assert [r["scenario_id"] for r in rows] == ["test-0", "test-1"]
     assert rows[0]["time_to_capture_s"] == pytest.approx(4.5) and rows[1]["captured"] is False
-    assert rows[0]["speed_ratio"] == 2.0 and rows[0]["route_direction"] == "+X"
+    assert rows[0]["speed_ratio"] == 2.0 and rows[0]["route_direction"] == "Z"  # it hovers
     summary = summarize(rows, list(env.reward_fn.weights), [0.5, 1.0, 2.5])
     assert summary["capture_rate"] == 0.5
     assert summary["capture_rate_ci95"] == pytest.approx(wilson_interval(1, 2))
