@@ -99,6 +99,19 @@ def test_outcome_stats_average_time_over_captures_only():
     assert s["mean_return"] == 0.0 and s["mean_visible_fraction"] == 0.875
 
 
+def test_a_summarys_times_are_the_ones_its_episodes_csv_holds():
+    # The env's times are float32 (12.3 is 12.3000002); pool reads them back from
+    # episodes.csv (6 significant digits). Both means are of the same numbers, so compare's
+    # table (from the summary) and pool's give one time for one evaluation.
+    steps = np.random.default_rng(0).integers(20, 600, size=500)
+    times = steps.astype(np.float32) * np.float32(0.1)
+    ones = np.ones(500)
+    s = outcome_stats(np.ones(500, dtype=bool), times, ones, ones, ones)
+    from_csv = np.array([float(f"{float(t):.6g}") for t in times])
+    assert s["mean_time_to_capture_s"] == from_csv.mean()
+    assert s["median_time_to_capture_s"] == np.median(from_csv)
+
+
 def test_pick_episodes_takes_fastest_captures_and_worst_misses():
     rows = [
         {"captured": True, "time_to_capture_s": 5.0, "min_distance_m": 1.0},

@@ -124,7 +124,11 @@ def outcome_stats(
     captured = np.asarray(captured, dtype=bool)
     n, k = int(captured.size), int(captured.sum())
     low, high = wilson_interval(k, n)
-    times = np.asarray(time_to_capture, dtype=float)[captured]
+    # The times as episodes.csv holds them (6 significant digits), so that a summary's means
+    # and pool's, read back from the CSV, are the same numbers (float32 12.3 is 12.3000002).
+    times = np.array(
+        [float(f"{t:.6g}") for t in np.asarray(time_to_capture, dtype=float)[captured]]
+    )
     return {
         "n": n,
         "captured": k,
