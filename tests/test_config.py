@@ -518,10 +518,13 @@ def test_a_bad_command_line_is_one_line_before_hydra_starts(argv, line):
     assert str(e.value).startswith(line) and "\n" not in str(e.value)
 
 
-def test_a_config_dir_of_ones_own_groups_is_checked_with_them(tmp_path):
+@pytest.mark.parametrize("name", ["conf", "with,comma", "br]ack", "quo'te", "back\\slash"])
+def test_a_config_dir_of_ones_own_groups_is_checked_with_them(tmp_path, name):
     # --config-dir adds a user's own options to the groups; the check composes with them, as
-    # Hydra will (it used to skip the check, so a bad value surfaced inside the run).
-    (tmp_path / "drone").mkdir()
+    # Hydra will (it used to skip the check, so a bad value surfaced inside the run), wherever
+    # the folder is.
+    tmp_path = tmp_path / name
+    (tmp_path / "drone").mkdir(parents=True)
     (tmp_path / "drone" / "my_drone.yaml").write_text(
         "# @package _global_\ndefaults:\n  - attacker_v3\ndrone:\n  name: my_drone\n"
     )

@@ -691,6 +691,16 @@ def test_two_vs_one_scenario_config_is_pursuit_with_two_attackers(make_spec):
     assert dataclasses.replace(two, attackers=1) == make_spec()
 
 
+def test_a_set_written_with_more_bins_than_a_new_one_may_have_still_loads(make_spec, tmp_path):
+    # The bound on quality_bins guards generation; a set written with more has its report.
+    write_scenario_set(make_spec("scenario.n_train=20", "scenario.n_val=5", "scenario.n_test=5"),
+                       tmp_path)  # fmt: skip
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    manifest["config"]["quality_bins"] = 20_000
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    assert ScenarioSet.load(tmp_path).spec.quality_bins == 20_000
+
+
 def test_a_set_of_one_split_reports_no_pair_to_compare(make_spec, tmp_path):
     spec = make_spec("scenario.n_train=50", "scenario.n_val=0", "scenario.n_test=0")
     quality = write_scenario_set(spec, tmp_path)["quality"]

@@ -31,7 +31,7 @@ def route_labels(routes: torch.Tensor) -> list[str]:
     one that never leaves its start's vertical is ``Z``."""
     out = []
     for route in routes:
-        start = route[0, :2] if len(route) > 1 else torch.zeros(2, dtype=route.dtype)
+        start = route[0, :2] if len(route) > 1 else route.new_zeros(2)
         away = route[:, :2] - start
         end = away[-1]
         if end.norm() < 1e-6:  # a loop: the farthest setpoint says where it goes

@@ -127,11 +127,14 @@ def check_command_line(
         raise ConfigError(f"{e.override}: {_one_line(e.message)}") from None
     extra: list[str] = []  # --config-dir DIR: its groups are composed as Hydra will
     if args.config_dir is not None:
-        if not os.path.isdir(args.config_dir) or any(
-            o.get_key_element() == "hydra.searchpath" for o in parsed
+        where = os.path.abspath(args.config_dir)
+        if (
+            not os.path.isdir(where)
+            or "${" in where  # an interpolation inside the quoted override below
+            or any(o.get_key_element() == "hydra.searchpath" for o in parsed)
         ):
             return  # a missing dir is Hydra's to refuse; a search path of its own too
-        extra = [f"hydra.searchpath=[file://{os.path.abspath(args.config_dir)}]"]
+        extra = [f"hydra.searchpath=[{_quoted(f'file://{where}')}]"]  # commas, brackets
     if args.cfg:
         validate = validate_job = None  # show the config, however incomplete; keys still count
     cluster = any(  # conf/hydra/launcher/cluster.yaml submits with SLURM's sbatch
@@ -289,6 +292,13 @@ def _unknown_key(cause: Any) -> str:
     if key.startswith("hydra."):  # Hydra's own config takes new keys
         hint += f"; +{key}=VALUE adds one"
     return f"{key}: no such setting ({hint})"
+
+
+def _quoted(text: str) -> str:
+    """``text`` as a quoted value of Hydra's override grammar: a quote is escaped with a
+    backslash, and backslashes are doubled only before a quote or the closing one."""
+    body = re.sub(r"(\\+)(?='|$)", lambda m: m.group(1) * 2, text).replace("'", "\\'")
+    return f"'{body}'"
 
 
 def _one_line(text: str) -> str:

@@ -163,8 +163,12 @@ class ScenarioSpec:
         return d
 
     @classmethod
-    def from_dict(cls, raw: Mapping[str, Any], where: str = "scenario") -> ScenarioSpec:
+    def from_dict(
+        cls, raw: Mapping[str, Any], where: str = "scenario", written: bool = False
+    ) -> ScenarioSpec:
         """Validate ``raw`` (e.g. the resolved ``scenario`` config) and build the spec.
+        ``written``: the config of a set already written (its manifest), whose report exists:
+        ``quality_bins`` is not held to :data:`MAX_QUALITY_BINS`, which guards generation.
 
         Raises:
             ConfigError: one line naming the first offending field and its value.
@@ -193,7 +197,7 @@ class ScenarioSpec:
                 f"ellipsoid (largest semi-axis {max(axes)} m)"
             )
         bins = _int(raw["quality_bins"], f"{where}.quality_bins")
-        if not 1 <= bins <= MAX_QUALITY_BINS:
+        if bins < 1 or (bins > MAX_QUALITY_BINS and not written):
             raise ConfigError(
                 f"{where}.quality_bins: must be in [1, {MAX_QUALITY_BINS}], got {bins}"
             )

@@ -299,7 +299,9 @@ class ScenarioSet:
         for key in ("config", "splits"):
             if not isinstance(manifest.get(key), dict):
                 raise ScenarioFileError(f"{path / MANIFEST}: missing {key}")
-        spec = ScenarioSpec.from_dict(manifest["config"], where=f"{path / MANIFEST}: config")
+        spec = ScenarioSpec.from_dict(
+            manifest["config"], where=f"{path / MANIFEST}: config", written=True
+        )
         ids, splits = {}, {}
         for split in SPLITS:
             entry = manifest["splits"].get(split)
