@@ -99,7 +99,8 @@ def test_every_bundle_takes_the_plain_action_from_the_command_line(drone):
 def test_attacker_v13_gates_the_law_of_attacker_v12():
     v12, v13 = (compose_config("train", [f"drone=attacker_v{i}"]) for i in (12, 13))
     assert (v12.action.homing_time, v12.action.start_lag, v12.action.gate_high) == (0.5, 0.5, 0.0)
-    assert {**v12.action, "gate_low": 1.5, "gate_high": 2.5} == dict(v13.action)
+    gate = {"gate_low": 1.5, "gate_high": 2.5, "gate_unreachable": False}
+    assert {**v12.action, **gate} == dict(v13.action)
     # and explores with noise correlated in time, where the algorithm's default draws afresh
     assert (v12.algo.noise_correlation, v13.algo.noise_correlation) == (0.0, 0.98)
 

@@ -594,6 +594,38 @@ def test_a_gated_env_flies_the_correction_scaled_by_the_deviation_it_observed(sc
     assert fractional > 0  # the gate was partly open somewhere
 
 
+def test_gate_unreachable_opens_the_gate_where_no_meeting_point_is_reachable(scenarios):
+    from rlplat.envs.components import RouteLawAction
+
+    opens = RouteLawAction(gate_low=1.5, gate_high=2.5, gate_unreachable=True)
+    deviation = torch.tensor([0.0, 2.0, 0.0, 2.0])
+    reachable = torch.tensor([True, True, False, False])
+    assert opens.reach(deviation, reachable).squeeze(-1).tolist() == [0.0, 0.5, 1.0, 1.0]
+    with pytest.raises(ValueError, match="gate_unreachable needs the meeting point"):
+        opens.reach(deviation)
+    # In the env: a shut gate (the law alone) but where the observed state's meeting point is
+    # out of reach, there the whole correction; an ungated env flown with the action masked
+    # the same way flies the same paths.
+    n = len(scenarios.split("val"))
+    shut = ("action.gate_low=1000", "action.gate_high=1001", "action.gate_unreachable=true")
+    gated = make_env(V11, *shut, scenarios=scenarios, num_envs=n, split="val")
+    plain = make_env(V11, scenarios=scenarios, num_envs=n, split="val")
+    g = torch.Generator().manual_seed(2)
+    a, b = gated.reset(), plain.reset()
+    opened = 0
+    for _ in range(60):
+        action = torch.rand(n, 3, generator=g) * 2 - 1
+        out_of_reach = ~gated._meeting[2].reshape(n)  # of the state the policy observes
+        opened += int(out_of_reach.sum())
+        a = gated.step(a.set("action", action))["next"]
+        b = plain.step(b.set("action", action * out_of_reach.unsqueeze(-1)))["next"]
+        assert torch.equal(a["positions"], b["positions"])
+    assert opened > 0  # some defender was out of reach
+    with pytest.raises(ConfigError, match="^action.gate_unreachable: opens the gate where no "
+                       "meeting point is reachable, and this action has no gate"):  # fmt: skip
+        make_env(V11, "action.gate_unreachable=true", scenarios=scenarios, num_envs=2)
+
+
 def test_a_gated_correction_flies_only_its_law_where_the_defender_keeps_its_route(scenarios):
     n = len(scenarios.split("val"))
     shut = make_env(V11, "action.gate_low=1000", "action.gate_high=1001", scenarios=scenarios,
@@ -635,7 +667,7 @@ def test_the_gated_bundle_starts_from_its_law_and_states_the_gate_in_its_card(sc
     assert (env.action_fn.gate_low, env.action_fn.gate_high) == (1.5, 2.5)
     assert (env.action_fn.homing_time, env.action_fn.start_lag) == (0.5, 0.5)  # attacker_v12's
     card = env.action_fn.card()
-    assert card["guidance"]["gate"] == {"low": 1.5, "high": 2.5}
+    assert card["guidance"]["gate"] == {"low": 1.5, "high": 2.5, "unreachable_opens": False}
     assert "gate(d) = clamp((d - 1.5) / 1, 0, 1)" in card["unit"]
     assert any(line.startswith("GATED") for line in env.action_fn.describe())
     assert "gate" not in make_env(V11, scenarios=scenarios, num_envs=2).action_fn.card()["guidance"]

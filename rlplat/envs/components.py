@@ -682,6 +682,11 @@ class RouteLawAction(GuidedVelocityAction):
             the policy saw it): the correction is scaled by ``clamp((deviation - gate_low) /
             (gate_high - gate_low), 0, 1)``, so a defender that keeps its route is met by the
             law alone and one that leaves it gets the whole correction. 0 and 0: no gate.
+        gate_unreachable: with a gate, it also opens wholly where no meeting point is
+            reachable: the law meets no route-flying defender there, so the correction can
+            cost the route flyers nothing, and a defender faster than the attacker is left to
+            the correction whatever its route deviation (``reachable`` of the state the policy
+            saw).
         horizon: s, how far ahead the law looks for a meeting point (None: the episode's time
             limit). A longer look finds a point further along the route for an attacker too
             slow to meet the defender sooner.
@@ -709,6 +714,7 @@ class RouteLawAction(GuidedVelocityAction):
         start_lag: float = 0.0,
         gate_low: float = 0.0,
         gate_high: float = 0.0,
+        gate_unreachable: bool = False,
         horizon: float | None = None,
         unreachable: str = "chase",
     ) -> None:
@@ -731,6 +737,12 @@ class RouteLawAction(GuidedVelocityAction):
                 "set gate_high > gate_low, or both to 0"
             )
         self.gate_low, self.gate_high = float(gate_low), float(gate_high)
+        if gate_unreachable and not gate_high > 0:
+            raise ConfigError(
+                "action.gate_unreachable: opens the gate where no meeting point is reachable, "
+                "and this action has no gate (gate_high 0)"
+            )
+        self.gate_unreachable = bool(gate_unreachable)
 
     @property
     def gated(self) -> bool:
@@ -748,10 +760,16 @@ class RouteLawAction(GuidedVelocityAction):
         """Whether :meth:`inverse` flies any command: not through a gate."""
         return not self.gated
 
-    def reach(self, deviation: Tensor) -> Tensor:
-        """The gate (*B, 1) in [0, 1] for route deviations ``deviation`` (*B,) m/s^2."""
+    def reach(self, deviation: Tensor, reachable: Tensor | None = None) -> Tensor:
+        """The gate (*B, 1) in [0, 1] for route deviations ``deviation`` (*B,) m/s^2; with
+        ``gate_unreachable``, 1 where ``reachable`` (*B,) bool is False."""
         span = self.gate_high - self.gate_low
-        return ((deviation - self.gate_low) / span).clamp(0.0, 1.0).unsqueeze(-1)
+        gate = ((deviation - self.gate_low) / span).clamp(0.0, 1.0)
+        if self.gate_unreachable:
+            if reachable is None:
+                raise ValueError("action route_law: gate_unreachable needs the meeting point")
+            gate = gate.masked_fill(~reachable.bool(), 1.0)
+        return gate.unsqueeze(-1)
 
     def __call__(
         self,
@@ -759,13 +777,16 @@ class RouteLawAction(GuidedVelocityAction):
         max_speed: Tensor,
         guidance: Tensor | None = None,
         deviation: Tensor | None = None,
+        reachable: Tensor | None = None,
     ) -> Tensor:
         """As :class:`GuidedVelocityAction`; a gated action also needs ``deviation`` (*B,)
-        m/s^2, the nearest defender's route deviation in the state the policy observed."""
+        m/s^2, the nearest defender's route deviation in the state the policy observed (and,
+        with ``gate_unreachable``, ``reachable`` (*B,) bool: whether that state's meeting
+        point is)."""
         if self.gated:
             if deviation is None:
                 raise ValueError("action route_law: a gated correction needs the route deviation")
-            action = action.clamp(-1.0, 1.0) * self.reach(deviation)
+            action = action.clamp(-1.0, 1.0) * self.reach(deviation, reachable)
         return super().__call__(action, max_speed, guidance)
 
     def guidance(
@@ -796,8 +817,10 @@ class RouteLawAction(GuidedVelocityAction):
                 f"clamp(law + {self.scale:g} * gate(d) * action, -1, 1) times the drone's maximum "
                 f"speed per axis, gate(d) = clamp((d - {self.gate_low:g}) / "
                 f"{self.gate_high - self.gate_low:g}, 0, 1)"
+                + (", and 1 where no meeting point is reachable" if self.gate_unreachable else "")
             )
-            card["guidance"]["gate"] = {"low": self.gate_low, "high": self.gate_high}
+            card["guidance"]["gate"] = {"low": self.gate_low, "high": self.gate_high,
+                                        "unreachable_opens": self.gate_unreachable}  # fmt: skip
         return card
 
     def _law_card(self) -> dict[str, Any]:
@@ -835,6 +858,11 @@ class RouteLawAction(GuidedVelocityAction):
                     f"{self.gate_low:g}) / {self.gate_high - self.gate_low:g}, 0, 1),",
                     "d the route_deviation input feature (m/s^2): 0 while the defender keeps its",
                     "route (the law alone), 1 once it departs from it.",
+                    *(
+                        ["It is 1 where the meeting point's search finds none reachable."]
+                        if self.gate_unreachable
+                        else []
+                    ),
                 ]
                 if self.gated
                 else []

@@ -551,6 +551,8 @@ class PursuitEnv(EnvBase):
         target, route_done = self._target()
         guidance = self.guidance(p, v, self.acceleration, self._meeting) if self._guided else None
         gate = {"deviation": self._deviation_seen} if self._gated else {}
+        if self._gated and self.action_fn.gate_unreachable:  # the observed state's point
+            gate["reachable"] = self._meeting[2]
         own = self.action_fn(action.reshape(n, t, -1), self.max_speed[:, self.team], guidance,
                              **gate)  # fmt: skip
         if self.learner == ATTACKER:

@@ -276,6 +276,7 @@ ACTION_KNOBS: dict[str, Rule] = {
     "unreachable": Choice(UNREACHABLE),
     "gate_low": NON_NEGATIVE,
     "gate_high": NON_NEGATIVE,
+    "gate_unreachable": flag,
 }
 #: Component groups: registry, knob rules, and the arguments the env factory passes itself.
 COMPONENTS: dict[str, tuple[Mapping[str, Any], Mapping[str, Rule], tuple[str, ...]]] = {
@@ -628,6 +629,7 @@ ADDED_KEYS: dict[str, Any] = {
     "action.start_lag": 0.0,
     "action.gate_low": 0.0,
     "action.gate_high": 0.0,
+    "action.gate_unreachable": False,
     "action.horizon": None,
     "action.unreachable": "chase",
     "algo.actor_average": 0.0,
