@@ -99,6 +99,10 @@ def speed_ratio_bin(ratio: np.ndarray, edges: Sequence[float]) -> np.ndarray:
     return np.searchsorted(np.asarray(edges, dtype=float), np.asarray(ratio), side="right")
 
 
+#: How episodes.csv writes a float (6 significant digits).
+CSV_FLOAT = ".6g"
+
+
 def outcome_stats(
     captured: np.ndarray,
     time_to_capture: np.ndarray,
@@ -124,10 +128,10 @@ def outcome_stats(
     captured = np.asarray(captured, dtype=bool)
     n, k = int(captured.size), int(captured.sum())
     low, high = wilson_interval(k, n)
-    # The times as episodes.csv holds them (6 significant digits), so that a summary's means
-    # and pool's, read back from the CSV, are the same numbers (float32 12.3 is 12.3000002).
+    # The times as episodes.csv holds them, so that a summary's means and pool's, read back
+    # from the CSV, are the same numbers (float32 12.3 is 12.3000002).
     times = np.array(
-        [float(f"{t:.6g}") for t in np.asarray(time_to_capture, dtype=float)[captured]]
+        [float(f"{t:{CSV_FLOAT}}") for t in np.asarray(time_to_capture, dtype=float)[captured]]
     )
     return {
         "n": n,

@@ -14,6 +14,7 @@ import torch
 
 from rlplat.eval.episodes import EpisodeResults
 from rlplat.eval.metrics import (
+    CSV_FLOAT,
     breakdown,
     outcome_stats,
     speed_ratio,
@@ -216,5 +217,5 @@ def _cell(value: Any) -> str:
     if isinstance(value, bool):
         return str(int(value))
     if isinstance(value, float):
-        return f"{value:.6g}"
+        return f"{value:{CSV_FLOAT}}"
     return str(value)

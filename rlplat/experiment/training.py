@@ -328,7 +328,7 @@ def checked_start(cfg: DictConfig, run_dir: Path | None, field: str = "hydra.run
     flown_attackers(cfg.env.attackers, scenarios)
     if cfg.scenarios_dir is not None:
         cfg = with_set_scenario(cfg, scenarios)
-    config = absolute_paths(OmegaConf.to_container(cfg, resolve=True))
+    config = OmegaConf.to_container(cfg, resolve=True)  # its paths absolute already
     resume_state = None
     if run_dir is not None:
         check_run_dir(run_dir, cfg.resume, field)
