@@ -13,7 +13,10 @@ whole split:
   seat's distance to the defender in m: whole within D1, none beyond D2 (a distance gate);
 - ``head_off`` / ``far-head_off`` / ``near-head_off``: every seat (the farther, the nearer one)
   flies the checkpoint over the route law with ``unreachable=head_off``, the others with
-  ``chase``, whichever the run was trained with (an ``action=route_law*`` run).
+  ``chase``, whichever the run was trained with (an ``action=route_law*`` run);
+- ``home:R``: within R m of the defender a seat flies the law's homing (proportional
+  navigation at the defender, no correction), farther the checkpoint over the law (a terminal
+  phase; an ``action=route_law*`` run).
 
 Prints the capture rate of each variant, of the route flyers and of the network defenders.
 
@@ -32,6 +35,7 @@ from tensordict.nn import TensorDictModuleBase
 
 from rlplat.agents.checkpoint import actor_from_state, load_checkpoint
 from rlplat.agents.export import observation_key
+from rlplat.envs.components import GuidedVelocityAction
 from rlplat.errors import ConfigError
 from rlplat.eval.episodes import evaluate
 from rlplat.experiment.evaluation import check_policy_fits, checkpoint_path, load_run_config
@@ -52,6 +56,7 @@ class SeatVariant(TensorDictModuleBase):
         self.actor, self.variant, self.position = actor, variant, position
         # near:D1:D2, read once (check_variant has checked it)
         self.gate = tuple(float(x) for x in variant.split(":")[1:]) if ":" in variant else None
+        self.home = variant.startswith("home:")
         self.obs_key, self.action_key = obs_key, action_key
         self.in_keys, self.out_keys = [obs_key], [action_key]
 
@@ -68,6 +73,8 @@ class SeatVariant(TensorDictModuleBase):
             scale = nearest.to(distance.dtype)
         elif self.variant == "near-law":
             scale = (~nearest).to(distance.dtype)
+        elif self.home:  # home:R, the law's homing within R (seat_home)
+            scale = (distance >= self.gate[0]).to(distance.dtype)
         else:  # near:D1:D2
             low, high = self.gate
             scale = ((high - distance) / (high - low)).clamp(0.0, 1.0)
@@ -95,18 +102,40 @@ def seat_unreachable(action_fn, seats: str):
     return guidance
 
 
+def seat_home(action_fn, radius: float):
+    """The route law's guidance (``action_fn.guidance``'s signature) that flies the law's
+    homing (proportional navigation at the defender) in the seats within ``radius`` m of their
+    defender and the law in the others."""
+    law = type(action_fn)
+
+    def guidance(rel, v_other, max_speed, a_other=None, meeting=None):
+        flown = law.guidance(action_fn, rel, v_other, max_speed, a_other, meeting)
+        homing = GuidedVelocityAction.guidance(action_fn, rel, v_other, max_speed)
+        return torch.where((rel.norm(dim=-1) < radius).unsqueeze(-1), homing, flown)
+
+    return guidance
+
+
 def check_variant(variant: str) -> str:
     if variant in ("policy", "law", "far-law", "near-law", *HEAD_OFF):
         return variant
     parts = variant.split(":")
+    if parts[0] == "home":
+        try:
+            radius = float(parts[1]) if len(parts) == 2 else float("nan")
+        except ValueError:
+            radius = float("nan")
+        if not radius > 0:
+            raise argparse.ArgumentTypeError(f"variant: home:R with R > 0 m, got {variant!r}")
+        return variant
     try:
         low, high = (float(x) for x in parts[1:])
     except ValueError:
         low = high = float("nan")
     if parts[0] != "near" or len(parts) != 3 or not 0 <= low < high:
         raise argparse.ArgumentTypeError(
-            f"variant: policy, law, far-law, near-law, {', '.join(HEAD_OFF)} or near:D1:D2 "
-            f"with 0 <= D1 < D2, got {variant!r}"
+            f"variant: policy, law, far-law, near-law, {', '.join(HEAD_OFF)}, home:R or "
+            f"near:D1:D2 with 0 <= D1 < D2, got {variant!r}"
         )
     return variant
 
@@ -133,8 +162,9 @@ def main() -> None:
                          num_envs=eval_num_envs(cfg, n))  # fmt: skip
     if getattr(env.action_fn, "corrects", None) is None:
         raise SystemExit(f"team_seats: action={cfg.action.name} corrects no law")
-    if any(v in HEAD_OFF for v in args.variants) and not hasattr(env.action_fn, "unreachable"):
-        raise SystemExit(f"team_seats: {', '.join(HEAD_OFF)} need action=route_law*, "
+    law_variants = [v for v in args.variants if v in HEAD_OFF or v.startswith("home:")]
+    if law_variants and not hasattr(env.action_fn, "unreachable"):
+        raise SystemExit(f"team_seats: {', '.join(law_variants)} need action=route_law*, "
                          f"got action={cfg.action.name}")  # fmt: skip
     try:
         features = check_policy_fits(state, cfg, env, path, lone_in_team=True)
@@ -159,9 +189,12 @@ def main() -> None:
             results = evaluate(env, actor)
             del env.action_fn.guidance  # the class's again
         else:
+            if variant.startswith("home:"):
+                env.action_fn.guidance = seat_home(env.action_fn, float(variant.split(":")[1]))
             module = SeatVariant(actor, variant, observation_key(env.group), env.action_key,
                                  slice(at, at + 3))  # fmt: skip
             results = evaluate(env, module)
+            env.action_fn.__dict__.pop("guidance", None)  # the class's again
         captured = results.captured  # one row per scenario of the split, in order
         rates = [captured.float().mean(), captured[~network].float().mean(),
                  captured[network].float().mean()]  # fmt: skip
