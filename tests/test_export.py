@@ -607,6 +607,44 @@ def test_the_shipped_defender_network_exports(scenarios, tmp_path):
     assert np.abs(c_policy(x.numpy()) - actor(x).numpy()).max() <= 1e-5
 
 
+def _tiny_actor(obs_dim: int, action_dim: int, activation: nn.Module) -> DeterministicActor:
+    torch.manual_seed(0)
+    mlp = nn.Sequential(nn.Linear(obs_dim, 6), activation, nn.Linear(6, 2 * action_dim))
+    return DeterministicActor(mlp=mlp, inv_scale=torch.ones(obs_dim), action_dim=action_dim,
+                              action_margin=0.2)  # fmt: skip
+
+
+def test_the_header_holds_any_description_and_names_what_it_needs(tmp_path):
+    # A description line (a drone's name, say) that holds a comment's end or start: the header
+    # still compiles without a warning, and the text survives, broken up.
+    actor = _tiny_actor(4, 3, nn.ReLU())
+    header, source = c_sources(actor, describe=["drone a */ b", "see /* here"])
+    (tmp_path / "policy.h").write_text(header)
+    (tmp_path / "policy.c").write_text(source)
+    subprocess.run(["cc", *C_FLAGS, "-Werror", "-c", "policy.c"], cwd=tmp_path, check=True)
+    assert "drone a * / b" in header and "see / * here" in header
+    c_policy, _ = build_library(header, source, 4, 3)
+    x = torch.randn(64, 4)
+    assert np.abs(c_policy(x.numpy()) - actor(x).numpy()).max() <= 1e-5
+    # libm: what the network calls (expm1f only for an ELU layer).
+    assert "no library but libm (tanhf)." in header
+    elu_header, elu_source = c_sources(_tiny_actor(4, 3, nn.ELU()))
+    assert "no library but libm (tanhf, expm1f)." in elu_header and "expm1f(" in elu_source
+
+    # One array for obs and action holds the larger of the two.
+    def flat(text: str) -> str:  # the header's comments as one line
+        return " ".join(text.replace("\n * ", " ").split())
+
+    assert "an array of RLPLAT_OBS_DIM floats then" in flat(header)
+    wide = c_sources(_tiny_actor(2, 3, nn.ReLU()))[0]
+    assert "an array of RLPLAT_ACT_DIM floats then" in flat(wide)
+    # A reserved prefix's suggested replacement is one that check_prefix takes.
+    with pytest.raises(ConfigError, match=r"choose another prefix, e\.g\. 'drone_strike'$"):
+        c_sources(actor, prefix="strike")
+    with pytest.raises(ConfigError, match=r"choose another prefix$"):
+        c_sources(actor, prefix="memo" + "x" * 19)
+
+
 TWO_CONTROLLERS = r"""#include <stdio.h>
 #include "attacker/policy.h"
 #include "defender/policy.h"

@@ -92,9 +92,11 @@ def check_prefix(prefix: Any, field: str = "prefix") -> str:
     for name in c_names(prefix):
         for pattern, where in _C_RESERVED:
             if pattern.match(name):
+                other = f"drone_{prefix}"
+                example = f", e.g. {other!r}" if len(other) <= _C_PREFIX_MAX else ""
                 raise ConfigError(
                     f"{field}: {prefix!r} makes {name}, a name C reserves ({where}); choose "
-                    f"another prefix, e.g. 'drone_{prefix}'"
+                    f"another prefix{example}"
                 )
     return prefix
 
@@ -275,6 +277,9 @@ def _c_array(values: np.ndarray, indent: str = "    ", per_line: int = 6) -> str
 
 
 def _comment(lines: Sequence[str]) -> str:
+    """A C block comment of ``lines``; a ``*/`` or ``/*`` in them (a drone's name, say) is
+    broken up, so that it neither ends the comment nor nests one."""
+    lines = [line.replace("*/", "* /").replace("/*", "/ *") for line in lines]
     return "/*\n" + "".join(f" * {line}".rstrip() + "\n" for line in lines) + " */\n"
 
 
@@ -335,18 +340,20 @@ def c_sources(
     widths = [obs_dim] + [spec["out"] for spec in layers if spec["type"] == "Linear"]
     widths[-1] = act_dim  # the last Linear keeps the mean's outputs only
     stack = 4 * sum(widths)
+    libm = "tanhf, expm1f" if any(spec["type"] == "ELU" for spec in layers) else "tanhf"
+    shared = f"{p}_OBS_DIM" if obs_dim >= act_dim else f"{p}_ACT_DIM"
     contract = (
         f"The call is reentrant and keeps no state: no initialisation, no global written, "
         f"no heap; about {stack} bytes of stack for the layer buffers. obs and action may be "
         f"the same array (obs is read whole before action is written; an array of "
-        f"{p}_OBS_DIM floats then). Link with -lm. The tables are static, their names start "
+        f"{shared} floats then). Link with -lm. The tables are static, their names start "
         f"with {prefix}_, so two controllers of different prefixes build as two files or as one."
     )
     header = (
         _comment(
             [
                 "policy.h: the deterministic policy of an rlplat controller (generated; do not",
-                "edit). C99, no heap, no library but libm (tanhf, expm1f).",
+                f"edit). C99, no heap, no library but libm ({libm}).",
                 "Checked against the network built with cc -O2 -std=c99 -ffp-contract=off: fused",
                 "multiply-adds, x87 or -ffast-math maths round differently (about 1e-5 of action).",
                 "",
