@@ -432,6 +432,24 @@ def test_clock_speed_asks_for_period_over_k_of_the_simulators_wall_clock(scenari
             airsim_env(scenarios, srv.address)
 
 
+def test_a_fractional_clock_speed_above_1_is_stepped_at_its_whole_part(scenarios, caplog):
+    # AirSim runs ClockSpeed 2.5 at 2: a step asks for half the period, and says so once.
+    with TestServer({**SETTINGS, "ClockSpeed": 2.5}) as srv:
+        with caplog.at_level("WARNING", logger="rlplat.envs.airsim.dynamics"):
+            env = airsim_env(scenarios, srv.address, clock_speed=2.5)
+        assert [r.message for r in caplog.records if "clock_speed 2.5" in r.message] == [
+            "dynamics.clock_speed 2.5: AirSim runs a ClockSpeed above 1 at its whole part, 2; "
+            "each step asks for that share of the control period"
+        ]
+        env.reset()
+        srv.start_recording()
+        env.rand_step()
+        calls = [r for r in srv.take_recording() if r.get("call") == "simContinueForTime"]
+        assert calls[0]["params"] == [pytest.approx(PERIOD / 2.0)]
+        assert env.dynamics.last_advance_s == pytest.approx(PERIOD, abs=1e-9)
+        env.close()
+
+
 def test_a_simulator_whose_continue_answers_before_its_time_has_run_is_waited_for(
     scenarios, caplog
 ):

@@ -201,6 +201,7 @@ def test_make_settings_builds_simpleflight_vehicles_in_ned():
         ([], {}, 1.0, "at least one"),
         (["A"], {"A": (0, 0, 0)}, 0.0, "clock_speed"),
         (["A"], {"A": (0, 0, 0)}, float("nan"), "clock_speed"),
+        (["A"], {"A": (0, 0, 0)}, 2.5, r"^clock_speed: AirSim .*\(ClockSpeed 2\.5 runs at 2\)"),
         (["A", "B"], {"A": (0, 0, 0)}, 1.0, r"missing \['B'\]"),
         (["A"], {"A": (0, 0, 0), "C": (1, 1, 1)}, 1.0, r"unknown \['C'\]"),
         (["A"], {"A": (0, 0)}, 1.0, r"spawn_enu\['A'\]"),

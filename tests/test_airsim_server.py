@@ -184,6 +184,18 @@ def test_conformance_continue_for_time_counts_wall_seconds_times_clock_speed(eve
         c.client.close()
 
 
+def test_conformance_a_clock_speed_above_1_runs_at_its_whole_part(event_loop_per_test):
+    # AirSim keeps its 3-ms step and divides its loop's period by int(ClockSpeed).
+    for speed, sim in ((2.5, 2), (0.5, 0.5)):
+        with TestServer({**SETTINGS, "ClockSpeed": speed}) as srv:
+            c = connect(srv.port)
+            c.simPause(True)
+            t0 = c.getMultirotorState("Attacker").timestamp
+            c.simContinueForTime(0.3)
+            assert c.getMultirotorState("Attacker").timestamp - t0 == round(0.3 * sim * NS)
+            c.client.close()
+
+
 def test_conformance_realtime_continue_takes_its_wall_time(event_loop_per_test):
     with TestServer({**SETTINGS, "ClockSpeed": 2.0}, realtime=True) as srv:
         c = connect(srv.port)

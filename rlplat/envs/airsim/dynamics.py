@@ -44,7 +44,7 @@ from rlplat.envs.airsim.frames import (
     spawn_offsets,
     world_to_local,
 )
-from rlplat.envs.airsim.settings import vehicle_names
+from rlplat.envs.airsim.settings import effective_clock_speed, vehicle_names
 from rlplat.envs.dynamics import DroneDynamics
 from rlplat.errors import ConfigError
 
@@ -129,6 +129,11 @@ class AirSimDynamics(DroneDynamics):
         )
         self.step_tolerance_s, self.on_time_mismatch = float(step_tolerance_s), on_time_mismatch
         self.clock_speed, self.move_margin_s = float(clock_speed), float(move_margin_s)
+        self._sim_speed = effective_clock_speed(self.clock_speed)  # what AirSim runs
+        if self._sim_speed != self.clock_speed:
+            log.warning("dynamics.clock_speed %g: AirSim runs a ClockSpeed above 1 at its whole "
+                        "part, %g; each step asks for that share of the control period",
+                        self.clock_speed, self._sim_speed)  # fmt: skip
         self.collided = torch.zeros(num_envs, num_drones, dtype=torch.bool, device=self.device)
         self.last_advance_s = float("nan")  # sim seconds the last step advanced
 
@@ -188,7 +193,7 @@ class AirSimDynamics(DroneDynamics):
         ned = enu_rows_to_ned(command[0].tolist())
         for name, velocity in zip(self.names, ned, strict=True):
             self.client.move_velocity(name, velocity, period + self.move_margin_s)
-        self.client.continue_for(period / self.clock_speed, f"a step of {period:g} s")
+        self.client.continue_for(period / self._sim_speed, f"a step of {period:g} s")
         before, what = self._timestamp_ns, f"the drones after a step of {period:g} s"
         self._timestamp_ns = self._read(what)
         if self._short(before, period):

@@ -19,7 +19,7 @@ from rlplat.envs.airsim.frames import enu_to_ned
 from rlplat.errors import ConfigError
 from rlplat.io import atomic_write_text
 
-__all__ = ["make_settings", "vehicle_names", "write_settings"]
+__all__ = ["effective_clock_speed", "make_settings", "vehicle_names", "write_settings"]
 
 
 def vehicle_names(
@@ -53,6 +53,14 @@ def _require_unique(names: Sequence[str]) -> None:
         seen.add(name)
 
 
+def effective_clock_speed(clock_speed: float) -> float:
+    """The sim seconds per wall second of AirSim's ``SteppableClock`` at ``ClockSpeed``
+    ``clock_speed``: above 1 it keeps its 3-ms physics step and divides its loop's period by
+    the speed's whole part (``SimModeWorldMultiRotor::setupClockSpeed``), so 2.5 runs at 2;
+    below 1 it scales the step itself."""
+    return float(math.floor(clock_speed)) if clock_speed >= 1 else float(clock_speed)
+
+
 def make_settings(
     names: Sequence[str],
     spawn_enu: Mapping[str, Sequence[float]],
@@ -64,7 +72,8 @@ def make_settings(
         names: the vehicles, in the order they are listed.
         spawn_enu: name -> (x, y, z) spawn point, metres in rlplat's ENU world frame; written as
             the vehicle's ``X``/``Y``/``Z`` in NED.
-        clock_speed: AirSim's ``ClockSpeed`` (sim seconds per wall second), > 0.
+        clock_speed: AirSim's ``ClockSpeed`` (sim seconds per wall second), > 0: a whole
+            number, or one below 1 (see :func:`effective_clock_speed`).
 
     Returns:
         ``{"SettingsVersion": 1.2, "SimMode": "Multirotor", "ClockType": "SteppableClock",
@@ -73,7 +82,8 @@ def make_settings(
 
     Raises:
         ConfigError: no names, repeated names, a name without a spawn point (or a spawn point for
-            no name), a spawn point that is not three finite numbers, or a bad clock_speed.
+            no name), a spawn point that is not three finite numbers, or a bad clock_speed (not
+            a number > 0, or one above 1 that AirSim would run at its whole part).
     """
     names = list(names)
     if not names:
@@ -81,6 +91,12 @@ def make_settings(
     _require_unique(names)
     if isinstance(clock_speed, bool) or not _finite(clock_speed) or not clock_speed > 0:
         raise ConfigError(f"clock_speed must be a finite number > 0, got {clock_speed!r}")
+    if effective_clock_speed(clock_speed) != clock_speed:
+        raise ConfigError(
+            f"clock_speed: AirSim speeds its clock up by whole factors only (ClockSpeed "
+            f"{clock_speed:g} runs at {effective_clock_speed(clock_speed):g}); give a whole number "
+            f"or one below 1, got {clock_speed!r}"
+        )
     missing = [n for n in names if n not in spawn_enu]
     extra = [n for n in spawn_enu if n not in names]
     if missing or extra:

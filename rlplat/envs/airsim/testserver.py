@@ -29,8 +29,10 @@ disarmed vehicle with ``Vehicle 'V' is not armed: call armDisarm(True) first`` (
 just stay off). ``armDisarm(True)`` without API control returns False, as in AirSim.
 
 Sim time: the clock (ns, from the wall clock at start) runs in ``physics_dt`` steps. Unpaused,
-it follows the wall clock times ``clock_speed``; ``simPause(True)`` freezes it.
-``simContinueForTime(s)`` advances it by exactly ``round(s * clock_speed * 1e9)`` ns (whole
+it follows the wall clock times the clock speed AirSim runs (``clock_speed``, a speed above 1
+at its whole part: :func:`~rlplat.envs.airsim.settings.effective_clock_speed`);
+``simPause(True)`` freezes it. ``simContinueForTime(s)`` advances it by exactly
+``round(s * speed * 1e9)`` ns (whole
 physics steps and one shorter last step), then answers and leaves the simulation paused: like
 AirSim's, its argument counts wall seconds, so with ClockSpeed k a client wanting ``dt`` of sim
 time asks for ``dt / k``. It runs as fast as the machine allows (``realtime=True``: it takes
@@ -65,6 +67,7 @@ from typing import Any
 import msgpack
 
 from rlplat.cli import exit_on_error
+from rlplat.envs.airsim.settings import effective_clock_speed
 from rlplat.envs.airsim.simworld import Physics, SimWorld, Vehicle
 from rlplat.errors import ConfigError
 from rlplat.io import atomic_write_text
@@ -176,7 +179,8 @@ class TestServer:
         tau_xy, tau_z, a_xy_max, a_up_max, a_down_max: the velocity response (s, m/s^2), as
             ``dynamics=velocity``.
         physics_dt: s, physics step.
-        clock_speed: sim seconds per wall second; None takes the settings' ``ClockSpeed`` (1).
+        clock_speed: the ``ClockSpeed`` setting; None takes the settings' (1). The clock runs
+            at it, above 1 at its whole part, as AirSim's does.
         hover_after_s: s of sim time after a move ends before the vehicle holds position.
         drag_xy, drag_z, mass: quadratic drag (N/(m/s)^2, none by default) and mass (kg).
         collision_radius: m, two vehicles closer than this are in contact.
@@ -236,6 +240,7 @@ class TestServer:
         self.world = SimWorld(self.settings, self.physics, start_ns=time.time_ns())
         self.host, self.port = host, port
         self.clock_speed = float(clock_speed)
+        self.sim_speed = effective_clock_speed(self.clock_speed)  # AirSim's rule
         self.realtime = bool(realtime)
         self.continue_answers_at_once = bool(continue_answers_at_once)
         self.recording: list[dict[str, Any]] | None = None
@@ -451,7 +456,7 @@ class TestServer:
             if self._paused or self._continuing or not self._unstalled.is_set():
                 continue
             wall0, sim0 = self._anchor
-            target = sim0 + round((time.monotonic() - wall0) * self.clock_speed * 1e9)
+            target = sim0 + round((time.monotonic() - wall0) * self.sim_speed * 1e9)
             steps = (target - self.world.t_ns) // dt_ns
             if steps * dt_ns > _MAX_CATCH_UP_S * 1e9:  # fell behind: run slower than asked
                 steps = int(_MAX_CATCH_UP_S * 1e9) // dt_ns
@@ -470,7 +475,7 @@ class TestServer:
                     wall0, sim0 = time.monotonic(), self.world.t_ns
                     while self.world.t_ns < target:
                         await asyncio.sleep(_TICK_S)
-                        now = sim0 + round((time.monotonic() - wall0) * self.clock_speed * 1e9)
+                        now = sim0 + round((time.monotonic() - wall0) * self.sim_speed * 1e9)
                         self.world.advance(min(now, target) - self.world.t_ns)
                 else:
                     chunk = 2000 * self.world.dt_ns  # let other connections in between
@@ -626,7 +631,7 @@ class TestServer:
     async def _continue_for_time(self, seconds: float) -> None:
         if not math.isfinite(seconds) or seconds < 0:
             raise _Fail(f"seconds must be a finite number >= 0, got {seconds}")
-        sim_ns = round(seconds * self.clock_speed * 1e9)
+        sim_ns = round(seconds * self.sim_speed * 1e9)
         if self.continue_answers_at_once:
             self._paused = False  # running until the continue ends
             self._spawn(self._continue(sim_ns))
