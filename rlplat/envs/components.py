@@ -845,13 +845,11 @@ class RouteLawAction(GuidedVelocityAction):
             f"until the defender is due within {self.homing_time:g} s (meeting points up to",
             f"{'the time limit' if self.horizon is None else f'{self.horizon:g} s'} ahead),",
             f"then proportional navigation (lead {self.lead:g}, max lead time "
-            f"{self.max_lead_time:g} s; rlplat.envs.kinematics.route_law). Where no point is",
-            "reachable, it "
-            + (
-                "chases with proportional navigation."
-                if self.unreachable == "chase"
-                else "flies to where the route puts the defender at the horizon's end and holds."
-            ),
+            f"{self.max_lead_time:g} s;",
+            "rlplat.envs.kinematics.route_law). Where no point is reachable, it",
+            "chases with proportional navigation."
+            if self.unreachable == "chase"
+            else "flies to where the route puts the defender at the horizon's end and holds.",
             *(
                 [
                     "GATED: the correction is multiplied by clamp((d - "
