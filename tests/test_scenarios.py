@@ -244,9 +244,14 @@ def test_load_returns_tensors_matching_files(make_spec, tmp_path):
             r"distinct combinations exist at the configured resolution",
         ),
         (("+scenario.strategy_mix.mixed=1",), r"unknown strategy 'mixed'; valid: setpoints, nn"),
-        (("scenario.attackers=0",), r"scenario.attackers: must be >= 1, got 0"),
+        (("scenario.attackers=0",), r"scenario.attackers: must be in \[1, 32\], got 0"),
+        (("scenario.defenders=33",), r"scenario.defenders: must be in \[1, 32\], got 33"),
+        (
+            ("scenario.n_train=100000000",),
+            r"scenario: n_train \+ n_val \+ n_test must be at most 1,000,000, got 100,002,500",
+        ),
         (("scenario.attackers=1.5",), r"scenario.attackers: expected an integer, got 1.5"),
-        (("scenario.defenders=-2",), r"scenario.defenders: must be >= 1, got -2"),
+        (("scenario.defenders=-2",), r"scenario.defenders: must be in \[1, 32\], got -2"),
         (
             ("scenario.min_separation=-1",),
             r"scenario.min_separation: must be a finite distance >= 0 m, got -1.0",
@@ -378,6 +383,21 @@ def test_cli_without_an_out_dir_is_one_line(tmp_path):
     r = _cli(cwd=tmp_path)
     assert r.returncode == 2
     assert r.stderr == "error: out_dir: missing (???); give out_dir=DIR, the folder for the set\n"
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    ("value", "shown"), [("", "''"), ("null", "None"), ("123", "123"), ("' '", "' '")]
+)
+def test_cli_an_out_dir_that_is_no_folder_name_is_one_line(
+    tmp_path, value, shown, refused_in_process
+):
+    # out_dir= would write the set into the working directory; null or a number is no path.
+    stderr = refused_in_process("-m", "rlplat.scenarios", f"out_dir={value}", *SMALL, cwd=tmp_path)
+    assert stderr == (
+        f"error: out_dir: must be a non-empty string, got {shown}; give out_dir=DIR, the folder "
+        "for the set\n"
+    )
     assert list(tmp_path.iterdir()) == []
 
 

@@ -7,6 +7,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from rlplat.errors import ConfigError
 from rlplat.experiment.command_line import hydra_main
+from rlplat.experiment.rules import Text
 from rlplat.scenarios import ScenarioSpec, format_quality, write_scenario_set
 
 
@@ -14,6 +15,9 @@ def spec_of(cfg: DictConfig) -> ScenarioSpec:
     """The set a composed ``conf/scenarios.yaml`` asks for; one line if it cannot be made."""
     if OmegaConf.is_missing(cfg, "out_dir"):
         raise ConfigError("out_dir: missing (???); give out_dir=DIR, the folder for the set")
+    problem = Text()(cfg.out_dir)  # out_dir= would write the set into the working directory
+    if problem:
+        raise ConfigError(f"out_dir: {problem}; give out_dir=DIR, the folder for the set")
     try:
         scenario = OmegaConf.to_container(cfg.scenario, resolve=True)
     except OmegaConfBaseException as e:  # an interpolation that does not resolve

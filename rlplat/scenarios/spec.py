@@ -58,6 +58,12 @@ class ParamSpec:
 #: The most ``quality_bins``: bins per column of the completeness check (each bin's count is
 #: reported; a billion of them took gigabytes before a set was written).
 MAX_QUALITY_BINS = 10_000
+#: The most scenarios a set holds (n_train + n_val + n_test): a generation draws two and a half
+#: times as many candidates in one batch (a hundred million took all of 24 GB).
+MAX_SCENARIOS = 1_000_000
+#: The most drones of a side (attackers, defenders): the pairwise separation check of a draw
+#: grows with their square (64 defenders took four minutes to find no place for them).
+MAX_TEAM = 32
 #: Default ``defender_spread``: x and y offset of an extra defender from the first one, m.
 DEFAULT_DEFENDER_SPREAD = ParamSpec(low=-15.0, high=15.0, resolution=0.5)
 #: Fields ``from_dict`` accepts but does not require, and ``to_dict`` omits for 1 vs 1.
@@ -168,7 +174,8 @@ class ScenarioSpec:
     ) -> ScenarioSpec:
         """Validate ``raw`` (e.g. the resolved ``scenario`` config) and build the spec.
         ``written``: the config of a set already written (its manifest), whose report exists:
-        ``quality_bins`` is not held to :data:`MAX_QUALITY_BINS`, which guards generation.
+        ``quality_bins`` is not held to :data:`MAX_QUALITY_BINS` nor the counts to
+        :data:`MAX_SCENARIOS`, which guard generation.
 
         Raises:
             ConfigError: one line naming the first offending field and its value.
@@ -186,6 +193,11 @@ class ScenarioSpec:
                 raise ConfigError(f"{where}.{k}: count must be >= 0, got {v}")
         if sum(counts.values()) == 0:
             raise ConfigError(f"{where}: n_train + n_val + n_test must be > 0, got 0")
+        if sum(counts.values()) > MAX_SCENARIOS and not written:
+            raise ConfigError(
+                f"{where}: n_train + n_val + n_test must be at most {MAX_SCENARIOS:,}, "
+                f"got {sum(counts.values()):,}"
+            )
 
         axes = _floats(raw["vision_semi_axes"], f"{where}.vision_semi_axes", 3)
         if min(axes) <= 0:
@@ -256,8 +268,8 @@ class ScenarioSpec:
 
         team = {k: _int(raw.get(k, 1), f"{where}.{k}") for k in ("attackers", "defenders")}
         for k, v in team.items():
-            if v < 1:
-                raise ConfigError(f"{where}.{k}: must be >= 1, got {v}")
+            if not 1 <= v <= MAX_TEAM:
+                raise ConfigError(f"{where}.{k}: must be in [1, {MAX_TEAM}], got {v}")
         separation = raw.get("min_separation", 3.0)
         try:
             separation = float(separation)
