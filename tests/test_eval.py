@@ -480,6 +480,16 @@ def test_another_scenario_set_warns_or_is_refused(trained_run, write_small_set, 
     assert "the run trained with" in caplog.text and "evaluating anyway" in caplog.text
     assert "env.vision_semi_axes" not in caplog.text  # drawn in the ellipsoid the run sees
     assert ev.summary["scenario_digest_matches"] is False
+    # The same out_dir flown again on the run's own set: the results of the other are
+    # replaced, and that is said; flown once more on the same set, nothing is said.
+    said = []
+    for _ in range(2):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            evaluate_run(trained_run, split="val", out_dir=tmp_path / "w", plots=False)
+        said.append([r.message for r in caplog.records if "replacing" in r.message])
+    assert len(said[0]) == 1 and said[1] == []
+    assert said[0][0].startswith(f"out_dir: replacing {tmp_path / 'w'}, flown on another scenario")
     wide = tmp_path / "wide"
     write_small_set(wide, "scenario.vision_semi_axes=[60.0,50.0,15.0]")
     caplog.clear()

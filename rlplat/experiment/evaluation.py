@@ -99,6 +99,19 @@ def checkpoint_path(run_dir: Path, ckpt: str) -> Path:
     return path
 
 
+def warn_replacing(out_dir: Path, digest: str) -> None:
+    """Log that the evaluation in ``out_dir`` is about to be replaced by one flown on another
+    scenario set (digest ``digest``): a run's own results, say, by those on a foreign set."""
+    try:
+        before = json.loads((Path(out_dir) / "summary.json").read_text()).get("scenario_digest")
+    except (OSError, ValueError, AttributeError):
+        return  # nothing there, or nothing that says which set it flew
+    if isinstance(before, str) and before != digest:
+        log.warning("out_dir: replacing %s, flown on another scenario set (digest %s..., this "
+                    "one %s...); give out_dir= to keep both", out_dir, before[:12],
+                    digest[:12])  # fmt: skip
+
+
 def checkpoint_label(run_dir: Path, ckpt: str, path: Path) -> str:
     """What the evaluations and exports of checkpoint ``ckpt`` (at ``path``) are named after:
     ``best``, ``last``, a file of the run's own ``checkpoints/`` by its name
@@ -368,6 +381,7 @@ def evaluate_run(
     expected = run_summary.get("scenario_digest") or (state or {}).get("scenario_digest")
     source = "summary.json" if "scenario_digest" in run_summary else "checkpoint"
     same_set = check_scenarios(scenarios, expected, strict_scenarios, source)
+    warn_replacing(out_dir, scenarios.digest)
     drawn = None if scenarios.spec is None else list(scenarios.spec.vision_semi_axes)
     if drawn is not None and drawn != list(cfg.env.vision_semi_axes):
         log.warning("env.vision_semi_axes: the run sees within %s m, the set's starts were "
