@@ -751,3 +751,19 @@ def test_a_cache_that_cannot_be_written_names_rlplat_cache(tmp_path, monkeypatch
     with pytest.raises(ConfigError, match=rf"^RLPLAT_CACHE: the configured scenario set is cached "
                        rf"under {re.escape(str(a_file))}, and cannot write"):  # fmt: skip
         resolve_scenarios(cfg, None)
+
+
+def test_a_small_set_writes_its_report_without_a_library_warning(make_spec, tmp_path):
+    # scipy's exact KS p-value gives up on small splits and says so on stderr; the report
+    # takes its asymptotic one, and the command line stays clean.
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        manifest = write_scenario_set(
+            make_spec("scenario.n_train=20", "scenario.n_val=5", "scenario.n_test=5",
+                      "scenario.quality_bins=10000"),
+            tmp_path,
+        )  # fmt: skip
+    assert [str(w.message) for w in caught if "ks_2samp" in str(w.message)] == []
+    assert manifest["quality"]["representativeness"]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 from itertools import combinations
 from typing import Any
@@ -78,7 +79,9 @@ def _completeness(spec: ScenarioSpec, splits: dict[str, SplitColumns]) -> dict[s
 def _ks(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
     from scipy import stats  # on first use: scipy takes a second to import
 
-    r = stats.ks_2samp(a, b)
+    with warnings.catch_warnings():  # scipy's exact p-value may fall back to the asymptotic
+        warnings.filterwarnings("ignore", "ks_2samp: Exact calculation unsuccessful")
+        r = stats.ks_2samp(a, b)
     return {"statistic": round(float(r.statistic), 6), "pvalue": round(float(r.pvalue), 6)}
 
 
