@@ -482,6 +482,10 @@ def test_a_team_run_and_a_lone_run_evaluate_on_the_same_defenders(team_sets, tmp
     refused = r"trained with attackers=1, this evaluation flies .*lone_in_team=true flies it"
     with pytest.raises(ConfigError, match=refused):
         evaluate_run(lone, scenarios_dir=team_sets[2, 1].path, out_dir=tmp_path / "g", **kwargs)
+    # The defenders are the set's alone (attackers= only flies fewer attackers).
+    two = r"with defenders=1, this evaluation flies defenders=2 \(scenarios_dir\)$"
+    with pytest.raises(ConfigError, match=two):
+        evaluate_run(lone, scenarios_dir=team_sets[1, 2].path, out_dir=tmp_path / "d", **kwargs)
     with pytest.raises(ConfigError, match=r"^ensemble: .* was trained with attackers=1, "):
         evaluate_run(team, ensemble=[lone], out_dir=tmp_path / "e", **kwargs)
     # export.py chooses the team by its scenarios_dir alone: the refusal names only that.

@@ -228,7 +228,8 @@ def check_policy_fits(
         if saved != value:
             lone = key == learners and saved == 1 and "lone_in_team" in settings
             hint = "; lone_in_team=true flies it in each seat" if lone else ""
-            chosen = ", ".join(x for x in settings.split(", ") if x != "lone_in_team")
+            skip = {"lone_in_team"} | ({"attackers"} if key == "defenders" else set())
+            chosen = ", ".join(x for x in settings.split(", ") if x not in skip)
             raise ConfigError(
                 f"{field}: {path} was trained with {key}={saved}, this evaluation flies "
                 f"{key}={value} ({chosen}{hint})"
