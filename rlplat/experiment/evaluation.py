@@ -108,7 +108,7 @@ def warn_replacing(out_dir: Path, digest: str) -> None:
         return  # nothing there, or nothing that says which set it flew
     if isinstance(before, str) and before != digest:
         log.warning("out_dir: replacing %s, flown on another scenario set (digest %s..., this "
-                    "one %s...); give out_dir= to keep both", out_dir, before[:12],
+                    "one %s...); give each set its own out_dir", out_dir, before[:12],
                     digest[:12])  # fmt: skip
 
 
@@ -218,9 +218,10 @@ def check_policy_fits(
                 f"{path} was trained in a team, with {learners}={interface[learners]}"
             )
         if counts[learners] < 2:
+            chooses = "scenarios_dir, attackers" if learners == "attackers" else "scenarios_dir"
             raise ConfigError(
                 f"lone_in_team: flies each seat of a team of {learners}, but this evaluation "
-                f"flies {learners}={counts[learners]}, no team (scenarios_dir, attackers)"
+                f"flies {learners}={counts[learners]}, no team ({chooses})"
             )
         counts[learners] = 1  # the team's size is checked; each seat flies alone
     for key, value in counts.items():
@@ -382,7 +383,6 @@ def evaluate_run(
     expected = run_summary.get("scenario_digest") or (state or {}).get("scenario_digest")
     source = "summary.json" if "scenario_digest" in run_summary else "checkpoint"
     same_set = check_scenarios(scenarios, expected, strict_scenarios, source)
-    warn_replacing(out_dir, scenarios.digest)
     drawn = None if scenarios.spec is None else list(scenarios.spec.vision_semi_axes)
     if drawn is not None and drawn != list(cfg.env.vision_semi_axes):
         log.warning("env.vision_semi_axes: the run sees within %s m, the set's starts were "
@@ -423,6 +423,7 @@ def evaluate_run(
             actor = make_scripted_policy(policy, env, **policy_args)
 
         # Replay.
+        warn_replacing(out_dir, scenarios.digest)  # checked: it will be replaced
         t0 = time.perf_counter()
         results = evaluate(env, actor, record=plots and trajectories > 0)
         wall = time.perf_counter() - t0
