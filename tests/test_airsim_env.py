@@ -439,7 +439,7 @@ def test_a_fractional_clock_speed_above_1_is_stepped_at_its_whole_part(scenarios
             env = airsim_env(scenarios, srv.address, clock_speed=2.5)
         assert [r.message for r in caplog.records if "clock_speed 2.5" in r.message] == [
             "dynamics.clock_speed 2.5: AirSim runs a ClockSpeed above 1 at its whole part, 2; "
-            "each step asks for that share of the control period"
+            "each step asks for control_period / 2 of its wall clock"
         ]
         env.reset()
         srv.start_recording()

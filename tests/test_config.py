@@ -236,6 +236,16 @@ BAD_TRAIN = [
         "dynamics.timeout_s",
         "0.05",
     ),  # fmt: skip
+    (  # AirSim runs ClockSpeed 2.5 at 2: a step is 0.05 s of its wall clock, not 0.04
+        [
+            "dynamics=airsim",
+            "algo.num_envs=1",
+            "dynamics.clock_speed=2.5",
+            "dynamics.timeout_s=0.045",
+        ],
+        "dynamics.timeout_s",
+        "= 0.05 s",
+    ),  # fmt: skip
     (
         ["dynamics=airsim", "dynamics.on_time_mismatch=ignore"],
         "dynamics.on_time_mismatch",

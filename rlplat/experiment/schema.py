@@ -30,6 +30,7 @@ from rlplat.agents.policies import POLICIES as SCRIPTED
 from rlplat.agents.sac import ACTIVATIONS
 from rlplat.envs.airsim.client import parse_endpoint
 from rlplat.envs.airsim.dynamics import TIME_MISMATCH
+from rlplat.envs.airsim.settings import effective_clock_speed
 from rlplat.envs.components import ACTIONS, OBSERVATIONS, REWARD_TERMS
 from rlplat.envs.dynamics import DYNAMICS
 from rlplat.envs.kinematics import UNREACHABLE
@@ -482,11 +483,12 @@ def _check_airsim(dynamics: Mapping[str, Any], env: Mapping[str, Any], n: int, f
             f"{field}: {n}, dynamics.endpoints names {len(dynamics['endpoints'])} simulator(s) "
             f"(one env per simulator): {show(dynamics['endpoints'])}"
         )
-    wall = env["control_period"] / dynamics["clock_speed"]
+    wall = env["control_period"] / effective_clock_speed(dynamics["clock_speed"])
     if dynamics["timeout_s"] <= wall:
         raise ConfigError(
             f"dynamics.timeout_s: {dynamics['timeout_s']} s is not longer than one step of the "
-            f"simulator's clock (env.control_period / dynamics.clock_speed = {wall:g} s)"
+            f"simulator's clock (env.control_period / dynamics.clock_speed, above 1 its whole "
+            f"part, = {wall:g} s)"
         )
     if env["compile_step"]:
         raise ConfigError("env.compile_step: true, must be false with dynamics=airsim")

@@ -8,8 +8,9 @@ endpoint (N = 1: an env batch of several simulators is a TorchRL ``ParallelEnv``
 - ``advance(command, period)``: each drone's command, clipped per axis to its ``max_speed``,
   goes out ENU -> NED as ``moveByVelocity`` lasting ``period + move_margin_s`` (so it never
   lapses into simple_flight's hover failsafe during the step); then ``simContinueForTime`` of
-  ``period / clock_speed`` (the call counts the simulator's wall clock); then every drone's
-  state and collision flag are read. The sim time that passed is measured from the state
+  ``period / clock_speed`` (the call counts the simulator's wall clock; a clock speed above 1
+  at its whole part, :func:`~rlplat.envs.airsim.settings.effective_clock_speed`); then every
+  drone's state and collision flag are read. The sim time that passed is measured from the state
   timestamps; off by more than ``step_tolerance_s`` it is an error or a logged warning
   (``on_time_mismatch``), never silent.
 - ``reset``: the simulation is reset (every vehicle at rest at its spawn point), paused again,
@@ -72,12 +73,13 @@ class AirSimDynamics(DroneDynamics):
         defender_name: vehicle name of the first defender (the i-th: ``f"{name}{i}"``).
         connect_timeout_s: s, the longest wait for the simulator to accept and answer.
         timeout_s: s, the longest wait for any later answer (must exceed one control period
-            of simulator wall time, ``period / clock_speed``).
+            of simulator wall time, ``period / clock_speed``, above 1 its whole part).
         step_tolerance_s: s, the largest accepted difference between the sim time a step
             advanced (from the state timestamps) and the control period.
         on_time_mismatch: ``error`` or ``warn`` (log a warning and go on) beyond the tolerance.
         clock_speed: the simulator's ``ClockSpeed`` (settings.json); a step of ``period``
-            sim seconds asks for ``period / clock_speed`` seconds of its wall clock.
+            sim seconds asks for ``period / clock_speed`` seconds of its wall clock (above 1,
+            ``clock_speed``'s whole part: AirSim runs 2.5 at 2).
         spawn: vehicle name -> (x, y, z) NED metres of its spawn point, as settings.json's
             ``X``/``Y``/``Z``, for vehicles or coordinates the simulator's settings lack.
         move_margin_s: s, how much longer than a control period each velocity command lasts.
@@ -132,8 +134,8 @@ class AirSimDynamics(DroneDynamics):
         self._sim_speed = effective_clock_speed(self.clock_speed)  # what AirSim runs
         if self._sim_speed != self.clock_speed:
             log.warning("dynamics.clock_speed %g: AirSim runs a ClockSpeed above 1 at its whole "
-                        "part, %g; each step asks for that share of the control period",
-                        self.clock_speed, self._sim_speed)  # fmt: skip
+                        "part, %g; each step asks for control_period / %g of its wall clock",
+                        self.clock_speed, self._sim_speed, self._sim_speed)  # fmt: skip
         self.collided = torch.zeros(num_envs, num_drones, dtype=torch.bool, device=self.device)
         self.last_advance_s = float("nan")  # sim seconds the last step advanced
 

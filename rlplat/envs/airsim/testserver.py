@@ -29,10 +29,9 @@ disarmed vehicle with ``Vehicle 'V' is not armed: call armDisarm(True) first`` (
 just stay off). ``armDisarm(True)`` without API control returns False, as in AirSim.
 
 Sim time: the clock (ns, from the wall clock at start) runs in ``physics_dt`` steps. Unpaused,
-it follows the wall clock times the clock speed AirSim runs (``clock_speed``, a speed above 1
-at its whole part: :func:`~rlplat.envs.airsim.settings.effective_clock_speed`);
-``simPause(True)`` freezes it. ``simContinueForTime(s)`` advances it by exactly
-``round(s * speed * 1e9)`` ns (whole
+it follows the wall clock times the speed k that AirSim runs ``clock_speed`` at (above 1 its
+whole part: :func:`~rlplat.envs.airsim.settings.effective_clock_speed`); ``simPause(True)``
+freezes it. ``simContinueForTime(s)`` advances it by exactly ``round(s * k * 1e9)`` ns (whole
 physics steps and one shorter last step), then answers and leaves the simulation paused: like
 AirSim's, its argument counts wall seconds, so with ClockSpeed k a client wanting ``dt`` of sim
 time asks for ``dt / k``. It runs as fast as the machine allows (``realtime=True``: it takes
