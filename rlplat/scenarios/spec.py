@@ -174,8 +174,8 @@ class ScenarioSpec:
     ) -> ScenarioSpec:
         """Validate ``raw`` (e.g. the resolved ``scenario`` config) and build the spec.
         ``written``: the config of a set already written (its manifest), whose report exists:
-        ``quality_bins`` is not held to :data:`MAX_QUALITY_BINS` nor the counts to
-        :data:`MAX_SCENARIOS`, which guard generation.
+        ``quality_bins`` is not held to :data:`MAX_QUALITY_BINS`, the counts to
+        :data:`MAX_SCENARIOS` nor the team sizes to :data:`MAX_TEAM`, which guard generation.
 
         Raises:
             ConfigError: one line naming the first offending field and its value.
@@ -268,7 +268,7 @@ class ScenarioSpec:
 
         team = {k: _int(raw.get(k, 1), f"{where}.{k}") for k in ("attackers", "defenders")}
         for k, v in team.items():
-            if not 1 <= v <= MAX_TEAM:
+            if v < 1 or (v > MAX_TEAM and not written):
                 raise ConfigError(f"{where}.{k}: must be in [1, {MAX_TEAM}], got {v}")
         separation = raw.get("min_separation", 3.0)
         try:
