@@ -16,7 +16,8 @@ whole split:
   ``chase``, whichever the run was trained with (an ``action=route_law*`` run);
 - ``home:R``: within R m of the defender a seat flies the law's homing (proportional
   navigation at the defender, no correction), farther the checkpoint over the law (a terminal
-  phase; an ``action=route_law*`` run).
+  phase; an ``action=route_law*`` run, on a set of one defender: the law's and the
+  observation's distances are then to the same drone).
 
 Prints the capture rate of each variant, of the route flyers and of the network defenders.
 
@@ -125,8 +126,8 @@ def check_variant(variant: str) -> str:
             radius = float(parts[1]) if len(parts) == 2 else float("nan")
         except ValueError:
             radius = float("nan")
-        if not radius > 0:
-            raise argparse.ArgumentTypeError(f"variant: home:R with R > 0 m, got {variant!r}")
+        if not 0 < radius < float("inf"):
+            raise argparse.ArgumentTypeError(f"variant: home:R with 0 < R < inf m, got {variant!r}")
         return variant
     try:
         low, high = (float(x) for x in parts[1:])
