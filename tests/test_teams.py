@@ -567,6 +567,11 @@ def test_a_lone_checkpoint_flies_each_seat_of_a_team(team_sets, tmp_path, tiny_r
     kwargs["scenarios_dir"] = team_sets[1, 2].path
     pair = evaluate_run(guard, lone_in_team=True, out_dir=tmp_path / "pair", **kwargs).summary
     assert (pair["defenders"], pair["lone_in_team"]) == (2, True)
+    # On a set of one defender there is no team of defenders; attackers= chooses none.
+    kwargs["scenarios_dir"] = team_sets[2, 1].path
+    no_team = r"^lone_in_team: .* flies defenders=1, no team \(scenarios_dir\)$"
+    with pytest.raises(ConfigError, match=no_team):
+        evaluate_run(guard, lone_in_team=True, out_dir=tmp_path / "z", **kwargs)
 
 
 def test_an_artifact_flies_a_seat_on_the_lone_features():
