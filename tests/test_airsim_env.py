@@ -417,15 +417,20 @@ def test_a_step_off_the_control_period_is_an_error_or_a_warning(scenarios, caplo
         env.close()
 
 
+def first_step_continue(env, srv) -> list:
+    """The arguments of the simContinueForTime of ``env``'s first step after a reset."""
+    env.reset()
+    srv.start_recording()
+    env.rand_step()
+    calls = [r for r in srv.take_recording() if r.get("call") == "simContinueForTime"]
+    return calls[0]["params"]
+
+
 def test_clock_speed_asks_for_period_over_k_of_the_simulators_wall_clock(scenarios):
     settings = {**SETTINGS, "ClockSpeed": 4.0}
     with TestServer(settings) as srv:
         env = airsim_env(scenarios, srv.address, clock_speed=4.0)
-        env.reset()
-        srv.start_recording()
-        env.rand_step()
-        calls = [r for r in srv.take_recording() if r.get("call") == "simContinueForTime"]
-        assert calls[0]["params"] == [pytest.approx(PERIOD / 4.0)]
+        assert first_step_continue(env, srv) == [pytest.approx(PERIOD / 4.0)]
         assert env.dynamics.last_advance_s == pytest.approx(PERIOD, abs=1e-9)
         env.close()
         with pytest.raises(ConfigError, match=r"dynamics.clock_speed: 1, .* ClockSpeed 4"):
@@ -441,11 +446,7 @@ def test_a_fractional_clock_speed_above_1_is_stepped_at_its_whole_part(scenarios
             "dynamics.clock_speed 2.5: AirSim runs a ClockSpeed above 1 at its whole part, 2; "
             "each step asks for control_period / 2 of its wall clock"
         ]
-        env.reset()
-        srv.start_recording()
-        env.rand_step()
-        calls = [r for r in srv.take_recording() if r.get("call") == "simContinueForTime"]
-        assert calls[0]["params"] == [pytest.approx(PERIOD / 2.0)]
+        assert first_step_continue(env, srv) == [pytest.approx(PERIOD / 2.0)]
         assert env.dynamics.last_advance_s == pytest.approx(PERIOD, abs=1e-9)
         env.close()
 

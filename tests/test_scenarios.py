@@ -5,6 +5,7 @@ import math
 import re
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -756,8 +757,6 @@ def test_a_cache_that_cannot_be_written_names_rlplat_cache(tmp_path, monkeypatch
 def test_a_small_set_writes_its_report_without_a_library_warning(make_spec, tmp_path):
     # scipy's exact KS p-value gives up on small splits and says so on stderr; the report
     # takes its asymptotic one, and the command line stays clean.
-    import warnings
-
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         manifest = write_scenario_set(
