@@ -327,6 +327,16 @@ def test_bad_input_is_one_line_and_writes_nothing(run, tmp_path, monkeypatch):
     assert _one_line(e) == (
         f"compiler: {fake} builds no loadable shared library from C99 (no file written)"
     )
+    # A compiler that warns before the error that fails it: the error is what is said.
+    fake.write_text(
+        "#!/bin/sh\necho \"cc1plus: warning: '-std=c99' is valid for C\" >&2\n"
+        'echo "probe.c:2: error: invalid conversion" >&2\nexit 1\n'
+    )
+    with pytest.raises(ConfigError) as e:
+        export_run(run, out_dir=out, compiler=str(fake))
+    assert _one_line(e) == (
+        f"compiler: {fake} failed on probe.c: probe.c:2: error: invalid conversion"
+    )
     a_file = tmp_path / "a-file"
     a_file.write_text("")
     for where, reason in ((a_file, "is a file"), (a_file / "out", f"{a_file} is a file")):

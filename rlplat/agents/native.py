@@ -103,9 +103,16 @@ def _compile(compiler: str, sources: list[Path], out: Path, *extra: str) -> str:
     cmd = [compiler, *C_FLAGS, *extra, "-o", str(out), *map(str, sources), "-lm"]
     res = subprocess.run(cmd, capture_output=True, text=True, check=False)
     if res.returncode != 0:
-        first = (res.stderr.strip().splitlines() or ["no message"])[0]
-        raise ConfigError(f"compiler: {compiler} failed on {sources[0].name}: {first}")
+        error = _first_error(res.stderr)
+        raise ConfigError(f"compiler: {compiler} failed on {sources[0].name}: {error}")
     return res.stderr.strip()
+
+
+def _first_error(stderr: str) -> str:
+    """The first diagnostic line that names an error, else the first line: a compiler's
+    warnings (e.g. a C++ compiler's about ``-std=c99``) come before the error that failed it."""
+    lines = stderr.strip().splitlines() or ["no message"]
+    return next((line for line in lines if re.search(r"\berror\b", line, re.I)), lines[0])
 
 
 def write_sources(directory: Path, header: str, source: str) -> Path:
