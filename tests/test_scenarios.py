@@ -146,6 +146,16 @@ def test_quality_report_asks_only_for_bins_that_hold_a_grid_value(make_spec):
     assert missing == ["val: attacker_max_speed bin [3.09, 3.1]"]
 
 
+def test_a_resolution_of_the_whole_range_draws_both_ends(make_spec):
+    # 5.0 - 4.9 is 0.0999999... in floating point: a step of 0.1 is the whole range, not more.
+    ends = ("low=4.9", "high=5.0", "resolution=0.1")
+    spec = make_spec("scenario.n_train=40", "scenario.n_val=10", "scenario.n_test=10",
+                     *(f"scenario.params.attacker_max_speed.{x}" for x in ends))  # fmt: skip
+    i = spec.param_names.index("attacker_max_speed")
+    drawn = {v for cols in generate(spec).values() for v in cols.values[:, i].tolist()}
+    assert drawn == {4.9, 5.0}
+
+
 def test_quality_report_is_complete_when_every_grid_value_occurs(make_spec):
     # Speeds 0.2-1.2 on a 0.1 grid, one value per bin: 0.3 is written as 0.3, below the edge
     # 0.30000000000000004 that the unrounded grid put it above (a bin reported missing).
@@ -303,8 +313,30 @@ def test_load_returns_tensors_matching_files(make_spec, tmp_path):
             r"scenario.params.defender_z.resolution: 1e-09 is finer than the files keep",
         ),
         (
-            ("scenario.params.defender_z.high=1e6", "scenario.params.defender_z.resolution=0.01"),
-            r"makes more than 10,000,000 values in \[low=6, high=1e\+06\]; at least 0.09999",
+            ("scenario.params.defender_z.high=1e5", "scenario.params.defender_z.resolution=0.001"),
+            r"makes more than 10,000,000 values in \[low=6, high=100000\]; at least 0.009999",
+        ),
+        # Values the files or the float32 simulator cannot keep: a set its loader would refuse,
+        # grid values that collide once rounded, or positions whose squares overflow.
+        (
+            ("scenario.params.attacker_max_speed.low=0.0000001",
+             "scenario.params.attacker_max_speed.high=1.0000001"),
+            r"scenario.params.attacker_max_speed.low: at most 6 decimals \(what the files keep\), "
+            r"got 1e-07",
+        ),
+        (
+            ("scenario.params.attacker_max_speed.low=1.0000005",
+             "scenario.params.attacker_max_speed.high=1.0000115",
+             "scenario.params.attacker_max_speed.resolution=0.000001"),
+            r"scenario.params.attacker_max_speed.low: at most 6 decimals",
+        ),
+        (
+            ("scenario.params.attacker_max_speed.resolution=0.12345678",),
+            r"scenario.params.attacker_max_speed.resolution: at most 6 decimals",
+        ),
+        (
+            ("scenario.params.attacker_max_speed.high=1e39",),
+            r"scenario.params.attacker_max_speed.high: must lie in \[-100000, 100000\], got 1e\+39",
         ),
         # A billion bins used to allocate gigabytes for the report.
         (("scenario.quality_bins=0",), r"scenario.quality_bins: must be in \[1, 10000\], got 0"),
@@ -483,11 +515,18 @@ def _first(**change):
     [
         (_first(attacker_max_speed=_first), r"test.jsonl:1: missing field 'attacker_max_speed'"),
         (_first(attacker_max_speed=float("nan")),
-         r"test.jsonl:1: attacker_max_speed must be a finite number > 0 \(m/s\), got nan"),
-        (_first(defender_max_speed=-2.0), r"test.jsonl:1: defender_max_speed must be a finite"),
-        (_first(attacker_max_speed="fast"), r"test.jsonl:1: attacker_max_speed must be a finite"),
+         r"test.jsonl:1: attacker_max_speed must be a number in \[1e-06, 100000\] \(m/s\), "
+         r"got nan"),
+        (_first(defender_max_speed=-2.0), r"test.jsonl:1: defender_max_speed must be a number in"),
+        (_first(attacker_max_speed="fast"), r"test.jsonl:1: attacker_max_speed must be a number"),
+        # finite, but not in float32: nothing the simulator can fly
+        (_first(defender_max_speed=1e-300), r"test.jsonl:1: defender_max_speed must be a number"),
+        (_first(attacker_max_speed=1e39), r"test.jsonl:1: attacker_max_speed must be a number"),
         (_first(attacker_start=[1.0, 2.0]),
-         r"test.jsonl:1: attacker_start must be 3 finite numbers \[x, y, z\] m, got \[1.0, 2.0\]"),
+         r"test.jsonl:1: attacker_start must be 3 numbers \[x, y, z\] m in \[-100000, 100000\], "
+         r"got \[1.0, 2.0\]"),
+        (_first(attacker_start=[1e39, 0.0, 20.0]),
+         r"test.jsonl:1: attacker_start must be 3 numbers"),
         (_first(route=7), r"test.jsonl:1: route must be a route index in \[0, 3\]"),
         (_first(defender_strategy="zigzag"),
          r"test.jsonl:1: defender_strategy 'zigzag' is unknown; valid: setpoints, nn"),

@@ -25,6 +25,9 @@ STRATEGIES = ("setpoints", "nn")
 DISTRIBUTIONS = ("uniform", "gaussian")
 #: The finest grid step: values are written to 6 decimals.
 MIN_RESOLUTION = 1e-6
+#: The largest magnitude of a position (m) or a speed (m/s) in a set: the simulator computes in
+#: float32, which keeps 1e5 m to a centimetre; far larger values overflow its squares.
+MAX_MAGNITUDE = 1e5
 #: The most grid values a parameter may have (the quality report bins them all).
 MAX_LEVELS = 10_000_000
 
@@ -359,7 +362,13 @@ def _param(raw: Any, where: str) -> ParamSpec:
     if not low < high:
         raise ConfigError(f"{where}: empty or inverted range [low={low}, high={high}]")
     (res,) = _floats([raw.get("resolution")], f"{where}.resolution", 1)
-    if not 0 < res <= high - low:
+    for key, value in (("low", low), ("high", high)):
+        if abs(value) > MAX_MAGNITUDE:
+            raise ConfigError(
+                f"{where}.{key}: must lie in [-{MAX_MAGNITUDE:g}, {MAX_MAGNITUDE:g}], got {value:g}"
+            )
+    # high - low is rounded (5.0 - 4.9 < 0.1): the tolerance of ParamSpec.levels
+    if not (res > 0 and (high - low) / res + 1e-9 >= 1):
         raise ConfigError(f"{where}.resolution: must be in (0, high - low], got {res}")
     if res < MIN_RESOLUTION or (high - low) / res >= MAX_LEVELS:
         raise ConfigError(
@@ -367,6 +376,11 @@ def _param(raw: Any, where: str) -> ParamSpec:
             f"more than {MAX_LEVELS:,} values in [low={low:g}, high={high:g}]; at least "
             f"{max(MIN_RESOLUTION, (high - low) / (MAX_LEVELS - 1)):.6g}"
         )
+    for key, value in (("low", low), ("high", high), ("resolution", res)):
+        if round(value, 6) != value:  # the files keep 6 decimals: grid values would move
+            raise ConfigError(
+                f"{where}.{key}: at most 6 decimals (what the files keep), got {value!r}"
+            )
     dist = raw.get("dist", "uniform")
     if dist not in DISTRIBUTIONS:
         raise ConfigError(

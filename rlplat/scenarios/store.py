@@ -25,7 +25,7 @@ from rlplat.scenarios.generator import (
     start_positions,
 )
 from rlplat.scenarios.quality import quality_report
-from rlplat.scenarios.spec import STRATEGIES, ScenarioSpec
+from rlplat.scenarios.spec import MAX_MAGNITUDE, MIN_RESOLUTION, STRATEGIES, ScenarioSpec
 
 log = logging.getLogger(__name__)
 
@@ -98,13 +98,21 @@ def _check_drone(rec: dict, start: str, speed: str, at: str, n_routes: int | Non
     """One drone's start (3 finite numbers, m), maximum speed (finite, > 0, m/s) and, for a
     defender (``n_routes``), route index and strategy name."""
     p = rec[start]
-    if not (isinstance(p, list) and len(p) == 3 and all(_number(x) for x in p)):
+    if not (
+        isinstance(p, list)
+        and len(p) == 3
+        and all(_number(x) and abs(x) <= MAX_MAGNITUDE for x in p)
+    ):
         raise ScenarioFileError(
-            f"{at}: {start} must be 3 finite numbers [x, y, z] m, got {p!r:.60}"
+            f"{at}: {start} must be 3 numbers [x, y, z] m in [-{MAX_MAGNITUDE:g}, "
+            f"{MAX_MAGNITUDE:g}], got {p!r:.60}"
         )
     v = rec[speed]
-    if not (_number(v) and v > 0):
-        raise ScenarioFileError(f"{at}: {speed} must be a finite number > 0 (m/s), got {v!r:.30}")
+    if not (_number(v) and MIN_RESOLUTION <= v <= MAX_MAGNITUDE):
+        raise ScenarioFileError(
+            f"{at}: {speed} must be a number in [{MIN_RESOLUTION:g}, {MAX_MAGNITUDE:g}] (m/s), "
+            f"got {v!r:.30}"
+        )
     if n_routes is None:
         return
     r = rec[route]
