@@ -1,4 +1,5 @@
 import csv
+import hashlib
 import inspect
 import json
 import logging
@@ -540,3 +541,25 @@ def test_evaluate_yaml_is_evaluate_run_with_its_defaults():
         "test",
         False,
     )
+
+
+def test_a_scenario_id_with_a_line_break_keeps_the_report_table_whole(
+    trained_run, write_small_set, tmp_path
+):
+    # Ids are any non-empty JSON strings: a hand-made set may hold "a|b" or a line break.
+    held = write_small_set(tmp_path / "set")
+    path = held.path / "val.jsonl"
+    records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    for i, rec in enumerate(records):
+        rec["id"] = f"hand\nmade|{i}"
+    text = "".join(json.dumps(rec) + "\n" for rec in records)
+    path.write_text(text)
+    manifest = json.loads((held.path / "manifest.json").read_text())
+    manifest["splits"]["val"]["sha256"] = hashlib.sha256(text.encode()).hexdigest()
+    (held.path / "manifest.json").write_text(json.dumps(manifest))
+    ev = evaluate_run(trained_run, split="val", scenarios_dir=held.path, out_dir=tmp_path / "ev",
+                      plots=False)  # fmt: skip
+    report = (ev.out_dir / "report.md").read_text().split("## Chosen episodes")[1]
+    rows = report.strip().splitlines()[2:]
+    assert rows and all(line.startswith("| ") and line.endswith(" |") for line in rows)
+    assert all("| hand\\nmade\\|" in line for line in rows[1:])

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -175,10 +176,17 @@ def write_report(
         for e, label in picked:
             r = rows[e]
             md.append(
-                f"| {label} | {r['scenario_id']} | {r['route']} ({r['route_direction']}) "
+                f"| {label} | {_md_cell(r['scenario_id'])} | {r['route']} ({r['route_direction']}) "
                 f"| {r['speed_ratio']:.2f} | {'yes' if r['captured'] else 'no'} "
                 f"| {_fmt(r['time_to_capture_s'], 1)} | {r['min_distance_m']:.2f} "
                 f"| {r['return']:.2f} |"
             )
         md.append("")
     atomic_write_text(out_dir / "report.md", "\n".join(md))
+
+
+def _md_cell(text: str) -> str:
+    """``text`` as one Markdown table cell: control characters (a line break in a hand-made
+    scenario id) written as escapes, ``|`` escaped."""
+    text = re.sub(r"[\x00-\x1f\x7f]", lambda m: repr(m.group())[1:-1], str(text))
+    return text.replace("|", "\\|")
