@@ -95,8 +95,9 @@ def _check_fields(rec: Any, fields: Sequence[str], optional: Sequence[str], at: 
 
 def _check_drone(rec: dict, start: str, speed: str, at: str, n_routes: int | None = None,
                  route: str = "route", strategy: str = "defender_strategy") -> None:  # fmt: skip
-    """One drone's start (3 finite numbers, m), maximum speed (finite, > 0, m/s) and, for a
-    defender (``n_routes``), route index and strategy name."""
+    """One drone's start (3 numbers within ±MAX_MAGNITUDE m), maximum speed (in
+    [MIN_RESOLUTION, MAX_MAGNITUDE] m/s) and, for a defender (``n_routes``), route index and
+    strategy name."""
     p = rec[start]
     if not (
         isinstance(p, list)
