@@ -11,6 +11,8 @@ A test that takes a ``device`` argument runs on the CPU and, where torch sees on
 device (``pytest -k cuda`` runs those alone on a GPU machine).
 """
 
+import hashlib
+import json
 import os
 import subprocess
 import sys
@@ -193,6 +195,25 @@ def write_small_set():
         return ScenarioSet.load(path)
 
     return write
+
+
+@pytest.fixture(scope="session")
+def rewrite_split():
+    """rewrite_split(set_dir, split, edit): the records of ``split`` edited (``edit(records)
+    -> records``, a string kept as a line) and the file hashed into the manifest again: a
+    hand-made set, as the loader sees it."""
+
+    def rewrite(where: Path, split: str, edit) -> None:
+        path = where / f"{split}.jsonl"
+        records = [json.loads(line) for line in path.read_text().splitlines()]
+        text = "".join(line if isinstance(line, str) else json.dumps(line) + "\n"
+                       for line in edit(records))  # fmt: skip
+        path.write_text(text)
+        manifest = json.loads((where / "manifest.json").read_text())
+        manifest["splits"][split]["sha256"] = hashlib.sha256(text.encode()).hexdigest()
+        (where / "manifest.json").write_text(json.dumps(manifest))
+
+    return rewrite
 
 
 @pytest.fixture(scope="module")

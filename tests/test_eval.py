@@ -1,5 +1,4 @@
 import csv
-import hashlib
 import inspect
 import json
 import logging
@@ -544,19 +543,13 @@ def test_evaluate_yaml_is_evaluate_run_with_its_defaults():
 
 
 def test_a_scenario_id_with_a_line_break_keeps_the_report_table_whole(
-    trained_run, write_small_set, tmp_path
+    trained_run, write_small_set, rewrite_split, tmp_path
 ):
     # Ids are any non-empty JSON strings: a hand-made set may hold "a|b" or a line break.
     held = write_small_set(tmp_path / "set")
-    path = held.path / "val.jsonl"
-    records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    for i, rec in enumerate(records):
-        rec["id"] = f"hand\nmade|{i}"
-    text = "".join(json.dumps(rec) + "\n" for rec in records)
-    path.write_text(text)
-    manifest = json.loads((held.path / "manifest.json").read_text())
-    manifest["splits"]["val"]["sha256"] = hashlib.sha256(text.encode()).hexdigest()
-    (held.path / "manifest.json").write_text(json.dumps(manifest))
+    rewrite_split(
+        held.path, "val", lambda recs: [{**r, "id": f"hand\nmade|{i}"} for i, r in enumerate(recs)]
+    )
     ev = evaluate_run(trained_run, split="val", scenarios_dir=held.path, out_dir=tmp_path / "ev",
                       plots=False)  # fmt: skip
     report = (ev.out_dir / "report.md").read_text().split("## Chosen episodes")[1]

@@ -1,5 +1,4 @@
 import dataclasses
-import hashlib
 import json
 import math
 import re
@@ -484,19 +483,6 @@ def test_a_count_that_is_not_an_integer_is_named_as_such(make_spec, tmp_path):
         ScenarioSet.load(tmp_path)
 
 
-def _rewrite(where: Path, split: str, edit) -> None:
-    """Edit the records of ``split`` (``edit(records) -> records``) and hash the file into the
-    manifest again: a hand-made set, as the loader sees it."""
-    path = where / f"{split}.jsonl"
-    records = [json.loads(line) for line in path.read_text().splitlines()]
-    text = "".join(line if isinstance(line, str) else json.dumps(line) + "\n"
-                   for line in edit(records))  # fmt: skip
-    path.write_text(text)
-    manifest = json.loads((where / "manifest.json").read_text())
-    manifest["splits"][split]["sha256"] = hashlib.sha256(text.encode()).hexdigest()
-    (where / "manifest.json").write_text(json.dumps(manifest))
-
-
 def _first(**change):
     def edit(records):
         rec = records[0]
@@ -536,18 +522,20 @@ def _first(**change):
         (lambda r: ["{not json\n", *r[1:]], r"test.jsonl:1: not a JSON record"),
     ],
 )  # fmt: skip
-def test_a_hand_made_set_is_checked_record_by_record(make_spec, tmp_path, edit, message):
+def test_a_hand_made_set_is_checked_record_by_record(
+    make_spec, tmp_path, rewrite_split, edit, message
+):
     write_scenario_set(make_spec(*SMALL), tmp_path)
-    _rewrite(tmp_path, "test", edit)
+    rewrite_split(tmp_path, "test", edit)
     with pytest.raises(ScenarioFileError, match=message) as e:
         ScenarioSet.load(tmp_path)
     assert "\n" not in str(e.value)
 
 
-def test_a_hand_made_set_may_hold_blank_lines(make_spec, tmp_path):
+def test_a_hand_made_set_may_hold_blank_lines(make_spec, tmp_path, rewrite_split):
     write_scenario_set(make_spec(*SMALL), tmp_path)
     before = ScenarioSet.load(tmp_path)
-    _rewrite(tmp_path, "test", lambda r: [r[0], "\n", *r[1:], "  \n"])
+    rewrite_split(tmp_path, "test", lambda r: [r[0], "\n", *r[1:], "  \n"])
     after = ScenarioSet.load(tmp_path)
     assert after.ids["test"] == before.ids["test"]
     assert (after.split("test") == before.split("test")).all()
