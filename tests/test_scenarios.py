@@ -295,6 +295,16 @@ def test_load_returns_tensors_matching_files(make_spec, tmp_path):
         # a string's characters are no list ('985' was read as [9, 8, 5])
         (("scenario.vision_semi_axes='985'",), r"scenario.vision_semi_axes: expected 3 numbers"),
         (("scenario.routes=[5]",), r"scenario.routes\[0\]: expected a list of \[x, y, z\]"),
+        # float32 overflows such a route or ellipsoid (the flight used to stop on an inf action)
+        (
+            ("scenario.routes=[[[1,0,10],[1e39,0,10]]]",),
+            r"scenario.routes\[0\]\[1\]: setpoint must lie within \[-100000, 100000\] m per "
+            r"axis, got \[1e\+39, 0.0, 10.0\]",
+        ),
+        (
+            ("scenario.vision_semi_axes=[48,1e39,13]",),
+            r"scenario.vision_semi_axes: must be at most 100000 m, got \[48.0, 1e\+39, 13.0\]",
+        ),
         (("scenario.routes=5",), r"scenario.routes: expected a list of routes"),
         (
             ("scenario.routes=[[[1,0,10],[2,0,10]],[[0,1,10]]]",),

@@ -205,6 +205,10 @@ class ScenarioSpec:
         axes = _floats(raw["vision_semi_axes"], f"{where}.vision_semi_axes", 3)
         if min(axes) <= 0:
             raise ConfigError(f"{where}.vision_semi_axes: must be > 0, got {list(axes)}")
+        if max(axes) > MAX_MAGNITUDE:
+            raise ConfigError(
+                f"{where}.vision_semi_axes: must be at most {MAX_MAGNITUDE:g} m, got {list(axes)}"
+            )
         min_distance = _finite(raw["min_distance"], f"{where}.min_distance")
         if min_distance < 0 or min_distance >= max(axes):
             raise ConfigError(
@@ -411,6 +415,11 @@ def _route(raw: Any, where: str) -> tuple[tuple[float, float, float], ...]:
     if not pts:
         raise ConfigError(f"{where}: a route needs at least one setpoint")
     for i, p in enumerate(pts):
+        if max(abs(x) for x in p) > MAX_MAGNITUDE:
+            raise ConfigError(
+                f"{where}[{i}]: setpoint must lie within [-{MAX_MAGNITUDE:g}, {MAX_MAGNITUDE:g}] "
+                f"m per axis, got {list(p)}"
+            )
         if p[2] <= 0:
             raise ConfigError(f"{where}[{i}]: setpoint altitude must be > 0 m, got {p[2]}")
     return pts
