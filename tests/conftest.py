@@ -216,9 +216,10 @@ def rewrite_split():
     return rewrite
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def scenarios(tmp_path_factory, write_small_set) -> ScenarioSet:
-    """The default small set, written once per module."""
+    """The default small set, written once per worker: read only (a test that edits a set
+    writes its own)."""
     return write_small_set(tmp_path_factory.mktemp("scenarios"))
 
 

@@ -35,6 +35,13 @@ def team_sets(tmp_path_factory, make_spec) -> dict[tuple[int, int], ScenarioSet]
     return sets
 
 
+@pytest.fixture(scope="module")
+def lone_run(team_sets, tmp_path_factory, tiny_run) -> str:
+    """A tiny run trained alone (1 vs 1), read (never written) by the tests that fly it in a
+    team."""
+    return tiny_run(team_sets[1, 1], tmp_path_factory.mktemp("lone") / "run")["run_dir"]
+
+
 @pytest.mark.parametrize("drone", ["attacker_v3", "defender_v1"])
 @pytest.mark.parametrize(("k", "m"), TEAMS)
 def test_specs_of_every_team_size(team_sets, drone, k, m):
@@ -447,12 +454,14 @@ def test_the_gym_adapter_refuses_a_team(team_sets):
         make_gym_env("drone=defender_v1", scenarios=team_sets[1, 2])
 
 
-def test_a_team_run_and_a_lone_run_evaluate_on_the_same_defenders(team_sets, tmp_path, tiny_run):
+def test_a_team_run_and_a_lone_run_evaluate_on_the_same_defenders(
+    team_sets, tmp_path, tiny_run, lone_run
+):
     import csv
 
     from rlplat.experiment.evaluation import evaluate_run
 
-    lone = tiny_run(team_sets[1, 1], tmp_path / "1v1")["run_dir"]
+    lone = lone_run
     team = tiny_run(team_sets[2, 1], tmp_path / "2v1")["run_dir"]
     kwargs = dict(plots=False, split="val")
     pair = evaluate_run(team, **kwargs).summary
@@ -524,7 +533,7 @@ def test_a_team_observation_holds_the_lone_one(name, opponents, mates, team_flag
             team.lone_features(True)
 
 
-def test_a_lone_checkpoint_flies_each_seat_of_a_team(team_sets, tmp_path, tiny_run):
+def test_a_lone_checkpoint_flies_each_seat_of_a_team(team_sets, tmp_path, tiny_run, lone_run):
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
     from rlplat.agents.checkpoint import actor_from_state, load_checkpoint
@@ -532,7 +541,7 @@ def test_a_lone_checkpoint_flies_each_seat_of_a_team(team_sets, tmp_path, tiny_r
     from rlplat.experiment.evaluation import evaluate_run, load_run_config
     from rlplat.experiment.factory import build_env
 
-    lone = tiny_run(team_sets[1, 1], tmp_path / "1v1")["run_dir"]
+    lone = lone_run
     state = load_checkpoint(Path(lone) / "checkpoints" / "best.pt")
     torch.manual_seed(0)  # a few updates leave the actor near its zero start: move it off
     state["actor"] = {k: v + torch.randn_like(v) for k, v in state["actor"].items()}
@@ -619,7 +628,9 @@ def test_a_capture_pays_every_attacker_and_the_root_reward_is_the_team_mean(team
     torch.testing.assert_close(nxt["attacker", "distance"].squeeze(-1), own)
 
 
-def test_a_lone_checkpoint_starts_each_seat_of_a_team_run(team_sets, tmp_path, tiny, tiny_run):
+def test_a_lone_checkpoint_starts_each_seat_of_a_team_run(
+    team_sets, tmp_path, tiny, tiny_run, lone_run
+):
     # init_from: a team run starts with the lone run's actor and critics in each seat; they
     # compute on the team's observations what they computed alone (team-mates weighted 0).
     from rlplat.agents.checkpoint import (
@@ -634,7 +645,7 @@ def test_a_lone_checkpoint_starts_each_seat_of_a_team_run(team_sets, tmp_path, t
     from rlplat.experiment.factory import build_env
     from rlplat.experiment.training import make_agent, make_interface, warm_start, warm_start_state
 
-    lone = tiny_run(team_sets[1, 1], tmp_path / "1v1")["run_dir"]
+    lone = lone_run
     state = load_checkpoint(Path(lone) / "checkpoints" / "best.pt")
     torch.manual_seed(0)  # a few updates leave the networks near their start: move them off
     loss, prefix = state["agent"]["loss"], "actor_network_params."
