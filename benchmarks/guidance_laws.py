@@ -108,7 +108,7 @@ def main() -> None:
           f"on test: {rates(table[best]['test'], network['test'])}")  # fmt: skip
     for split in SPLITS:
         union = torch.stack([table[law][split] for law in laws]).any(0)
-        ceiling = split_ceiling(cfg, cfg, envs[split], scenarios, split, "cpu")
+        ceiling, _ = split_ceiling(cfg, envs[split], scenarios, split, "cpu")
         print(
             f"Union of the grid on {split}: {rates(union, network[split])}; capture ceiling "
             f"on route-flying defenders {ceiling[~network[split]].mean().item():.3f}"

@@ -15,6 +15,7 @@ from tensordict.nn import TensorDictModule
 
 from rlplat.agents.policies import make_scripted_policy
 from rlplat.errors import ConfigError
+from rlplat.eval.ceiling import intercept_ceiling
 from rlplat.eval.episodes import evaluate
 from rlplat.eval.metrics import wilson_interval
 from rlplat.eval.tables import episode_rows, summarize
@@ -285,19 +286,34 @@ def test_compare_mode_flies_every_baseline_in_one_command(trained_run):
     assert not list((trained_run / "eval" / "val-best").glob("*.png"))  # plots=false
 
 
-def test_compare_mode_writes_under_out_dir_and_leaves_the_run_alone(trained_run, tmp_path, capsys):
+def test_compare_mode_writes_under_out_dir_and_leaves_the_run_alone(
+    trained_run, tmp_path, capsys, monkeypatch
+):
+    from rlplat.experiment import evaluation
+
     before = sorted(p.relative_to(trained_run) for p in trained_run.rglob("*"))
     out = tmp_path / "flown-elsewhere"
     cfg = compose_config(
         "evaluate",
         [f"run_dir={trained_run}", "split=val", "compare=true", "plots=false", f"out_dir={out}"],
     )
+    flown = []  # the ceilings are flown once for the four policies: capture, then route
+    monkeypatch.setattr(evaluation, "_CEILINGS", {})
+    monkeypatch.setattr(evaluation, "intercept_ceiling",
+                        lambda *a: flown.append(1) or intercept_ceiling(*a))  # fmt: skip
     lines = evaluate_from_config(cfg)
+    assert len(flown) == 2
     assert sorted(p.name for p in out.iterdir()) == [
         "compare-val.csv", "compare-val.md",  # plots=false: no PNG
         "val-best", "val-proportional_navigation", "val-pure_pursuit", "val-route_intercept",
     ]  # fmt: skip
     assert sorted(p.relative_to(trained_run) for p in trained_run.rglob("*")) == before
+    ceilings = {  # each policy's episodes hold the same ceilings
+        json.dumps([(r["interceptable"], r["route_interceptable"])
+                    for r in read_episodes(d / "episodes.csv")])
+        for d in out.iterdir() if d.is_dir()
+    }  # fmt: skip
+    assert len(ceilings) == 1 and '"1"' in ceilings.pop()
     for line in lines[:4]:  # each policy's report is under out_dir
         assert f"report {out}/val-" in line
     table = (out / "compare-val.md").read_text()

@@ -430,7 +430,7 @@ def evaluate_run(
         log.info("%s on %d %s scenarios in %.1f s", name, n, split, wall)
 
         routes = env.routes.cpu()
-        bound, route_bound = split_ceiling(cfg, env_cfg, env, scenarios, split, device)
+        bound, route_bound = split_ceiling(cfg, env, scenarios, split, device)
         rows = episode_rows(
             results, scenarios, split, routes, env.num_attackers, bound, route_bound
         )
@@ -543,12 +543,43 @@ def plain_action(cfg: DictConfig) -> DictConfig:
     return plain
 
 
-def split_ceiling(cfg, env_cfg, env: PursuitEnv, scenarios, split: str, device):
+#: The ceilings flown in this process, by what they depend on (:func:`split_ceiling`): the
+#: policies of one comparison (``evaluate.py compare=true``, ``-m policy=...``) share them.
+_CEILINGS: dict[tuple, tuple] = {}
+_CEILINGS_KEPT = 8
+
+
+def split_ceiling(cfg, env: PursuitEnv, scenarios, split: str, device):
     """The capture ceiling and the route ceiling of the split (:mod:`rlplat.eval.ceiling`),
     each (E,) or None where it is not defined: a defender learner, or dynamics that are not
-    separable per axis."""
+    separable per axis. Flown once per set, split and config in a process."""
     if ROLES[env.learner] != "attacker" or cfg.dynamics.get("name") != "velocity":
         return None, None
+    n = env.batch_size[0]
+    key = (scenarios.digest, split, n, str(device), env.num_attackers, env.num_defenders,
+           OmegaConf.to_yaml(plain_action(cfg), resolve=True))  # fmt: skip
+    if key not in _CEILINGS:
+        _CEILINGS[key] = _fly_ceilings(cfg, env, scenarios, split, device)
+        while len(_CEILINGS) > _CEILINGS_KEPT:
+            del _CEILINGS[next(iter(_CEILINGS))]  # the oldest
+    ceiling, route = _CEILINGS[key]
+    if env.num_defenders > 1 or not bool(ceiling.defined.any()):
+        log.info("capture ceiling on %s: not defined (%s)", split,
+                 "several defenders" if env.num_defenders > 1
+                 else "no scenario with a route-flying defender")  # fmt: skip
+    else:
+        log.info("capture ceiling on %s: %.3f of %d scenarios with a route-flying defender",
+                 split, ceiling.rate, int(ceiling.defined.sum()))  # fmt: skip
+    if route is None:  # nothing reacts, or no ceiling
+        return ceiling.interceptable.clone(), ceiling.interceptable.clone()
+    log.info("route ceiling on %s: %.3f of %d scenarios, every defender flying its route",
+             split, route.rate, int(route.defined.sum()))  # fmt: skip
+    return ceiling.interceptable.clone(), route.interceptable.clone()
+
+
+def _fly_ceilings(cfg, env: PursuitEnv, scenarios, split: str, device):
+    """The split's capture ceiling, and its route ceiling where some defender reacts (else
+    None), each flown with velocity commands on an env of its own."""
     n = env.batch_size[0]
 
     def plain_env(scenario_set) -> PursuitEnv:  # the split flown with velocity commands
@@ -562,21 +593,10 @@ def split_ceiling(cfg, env_cfg, env: PursuitEnv, scenarios, split: str, device):
         )  # fmt: skip
         return intercept_ceiling(flown, dynamics)
 
-    plain = env_cfg.action.get("name") == "velocity"
-    ceiling = ceiling_of(env if plain else plain_env(scenarios))
-    if env.num_defenders > 1 or not bool(ceiling.defined.any()):
-        log.info("capture ceiling on %s: not defined (%s)", split,
-                 "several defenders" if env.num_defenders > 1
-                 else "no scenario with a route-flying defender")  # fmt: skip
-    else:
-        log.info("capture ceiling on %s: %.3f of %d scenarios with a route-flying defender",
-                 split, ceiling.rate, int(ceiling.defined.sum()))  # fmt: skip
+    ceiling = ceiling_of(plain_env(scenarios))
     if bool(ceiling.defined.all()) or env.num_defenders > 1:
-        return ceiling.interceptable, ceiling.interceptable  # nothing reacts, or no ceiling
-    route = ceiling_of(plain_env(route_flown(scenarios)))
-    log.info("route ceiling on %s: %.3f of %d scenarios, every defender flying its route",
-             split, route.rate, int(route.defined.sum()))  # fmt: skip
-    return ceiling.interceptable, route.interceptable
+        return ceiling, None
+    return ceiling, ceiling_of(plain_env(route_flown(scenarios)))
 
 
 def evaluate_from_config(cfg: DictConfig) -> list[str]:
