@@ -35,13 +35,14 @@ freezes it. ``simContinueForTime(s)`` advances it by exactly ``round(s * k * 1e9
 physics steps and one shorter last step), then answers and leaves the simulation paused: like
 AirSim's, its argument counts wall seconds, so with ClockSpeed k a client wanting ``dt`` of sim
 time asks for ``dt / k``. It runs as fast as the machine allows (``realtime=True``: it takes
-``s`` wall seconds, as a simulator running in real time would). ``simContinueForFrames(n)``
-advances ``n`` physics steps. A move (``moveByVelocity``) answers True once its ``duration`` of
-sim time has passed, False when a later motion call on the same vehicle (or ``reset``,
-``cancelLastTask``, disarming, releasing API control) cancels it; while paused it never
-completes. ``reset()`` puts every vehicle back at its spawn point and clears API control and
-arming. ``getMultirotorState().collision`` is never filled; ``simGetCollisionInfo`` returns the
-latched contact and clears it.
+``s`` wall seconds, as a simulator running in real time would; ``continue_runs`` < 1: it runs
+that fraction of ``s``, as AirSim does when its physics ticks run long).
+``simContinueForFrames(n)`` advances ``n`` physics steps. A move (``moveByVelocity``) answers
+True once its ``duration`` of sim time has passed, False when a later motion call on the same
+vehicle (or ``reset``, ``cancelLastTask``, disarming, releasing API control) cancels it; while
+paused it never completes. ``reset()`` puts every vehicle back at its spawn point and clears
+API control and arming. ``getMultirotorState().collision`` is never filled;
+``simGetCollisionInfo`` returns the latched contact and clears it.
 
 Faults for tests: ``stall()`` keeps every socket open but answers nothing (and freezes the
 clock) until ``unstall()``; ``drop_connections()`` closes every client connection; ``stop()``
@@ -187,6 +188,9 @@ class TestServer:
         continue_answers_at_once: ``simContinueForTime`` answers as soon as it starts the
             simulation, which runs on and pauses when its time is up (``simIsPaused`` tells):
             AirSim versions whose ``continueForTime`` does not wait.
+        continue_runs: the fraction of a ``simContinueForTime``'s time the simulation runs
+            (in (0, 1]): AirSim's call counts its wall clock, and on a machine too loaded for
+            its physics ticks it runs less sim time than asked (a long tick is not made up).
     """
 
     __test__ = False  # not a pytest test class
@@ -211,6 +215,7 @@ class TestServer:
         collision_radius: float = 0.5,
         realtime: bool = False,
         continue_answers_at_once: bool = False,
+        continue_runs: float = 1.0,
     ) -> None:
         if not isinstance(settings, Mapping):
             raise ConfigError(f"settings must be a dict (settings.json), got {type(settings)}")
@@ -221,6 +226,12 @@ class TestServer:
             raise ConfigError(f"clock_speed must be a number > 0, got {clock_speed!r}")
         if not (math.isfinite(clock_speed) and clock_speed > 0):
             raise ConfigError(f"clock_speed must be a number > 0, got {clock_speed!r}")
+        if (
+            isinstance(continue_runs, bool)
+            or not isinstance(continue_runs, (int, float))
+            or (not 0 < continue_runs <= 1)
+        ):
+            raise ConfigError(f"continue_runs must be a number in (0, 1], got {continue_runs!r}")
         if not isinstance(port, int) or not 0 <= port < 65536:
             raise ConfigError(f"port must be an integer in [0, 65535], got {port!r}")
         self.physics = Physics(
@@ -242,6 +253,7 @@ class TestServer:
         self.sim_speed = effective_clock_speed(self.clock_speed)  # AirSim's rule
         self.realtime = bool(realtime)
         self.continue_answers_at_once = bool(continue_answers_at_once)
+        self.continue_runs = float(continue_runs)
         self.recording: list[dict[str, Any]] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
@@ -630,7 +642,7 @@ class TestServer:
     async def _continue_for_time(self, seconds: float) -> None:
         if not math.isfinite(seconds) or seconds < 0:
             raise _Fail(f"seconds must be a finite number >= 0, got {seconds}")
-        sim_ns = round(seconds * self.sim_speed * 1e9)
+        sim_ns = round(seconds * self.continue_runs * self.sim_speed * 1e9)
         if self.continue_answers_at_once:
             self._paused = False  # running until the continue ends
             self._spawn(self._continue(sim_ns))
@@ -691,7 +703,7 @@ def main(argv: Sequence[str] | None = None, settings: Mapping[str, Any] | None =
     Args:
         argv: ``--settings FILE`` (required unless ``settings`` is given), ``--host``,
             ``--port`` (default: the settings' ``ApiServerPort``, else 41451; 0 picks a free
-            one), ``--clock-speed``, ``--realtime`` and
+            one), ``--clock-speed``, ``--realtime``, ``--continue-runs`` and
             the physics constants (``--tau-xy`` ...).
         settings: the settings dict to serve when ``--settings`` is not given.
     """
@@ -704,6 +716,10 @@ def main(argv: Sequence[str] | None = None, settings: Mapping[str, Any] | None =
     parser.add_argument("--port", type=int, default=None, help="default: ApiServerPort, 41451")
     parser.add_argument("--clock-speed", type=float, default=None, help="default: ClockSpeed")
     parser.add_argument("--realtime", action="store_true", help="continues take wall time")
+    parser.add_argument(
+        "--continue-runs", type=float, default=1.0,
+        help="fraction of a continue's time the simulation runs (AirSim, loaded)",
+    )  # fmt: skip
     for name, default in (
         ("tau_xy", 0.9),
         ("tau_z", 0.08),
@@ -745,6 +761,7 @@ def main(argv: Sequence[str] | None = None, settings: Mapping[str, Any] | None =
         drag_z=args.drag_z,
         collision_radius=args.collision_radius,
         realtime=args.realtime,
+        continue_runs=args.continue_runs,
     )
     return serve_forever(server)
 
