@@ -140,6 +140,7 @@ class AirSimDynamics(DroneDynamics):
                         self.clock_speed, self._sim_speed, self._sim_speed)  # fmt: skip
         self.collided = torch.zeros(num_envs, num_drones, dtype=torch.bool, device=self.device)
         self.last_advance_s = float("nan")  # sim seconds the last step advanced
+        self._ran_short = False  # a step has been run on for time it lacked (logged once)
 
         # Connect, check the vehicles and the clock, read the spawn points; then pause.
         self.client = AirSimClient(
@@ -209,8 +210,12 @@ class AirSimDynamics(DroneDynamics):
             lacking = period - (self._timestamp_ns - before) / 1e9
             if not self._short(before, period) or lacking <= 0:
                 break
-            log.debug("simulator at %s: a step of %g s ran %.4f s short; running it on",
-                      self.client.address, period, lacking)  # fmt: skip
+            log.log(logging.DEBUG if self._ran_short else logging.WARNING,
+                    "simulator at %s: a step of %g s ran %.4f s short (its simContinueForTime "
+                    "counts wall time: a loaded machine, or a ClockSpeed other than "
+                    "dynamics.clock_speed); such steps are run on for the time they lack",
+                    self.client.address, period, lacking)  # fmt: skip
+            self._ran_short = True
             self._run(lacking, before, period, what)
             hits = hits | self.collided
         self.collided = hits
