@@ -310,8 +310,8 @@ def _composed(*overrides: str):
 
 @pytest.mark.parametrize("overrides", NUMERIC, ids=lambda o: " ".join(o))
 def test_every_number_refuses_nan(overrides):
-    # What `++field=nan` composes to, set on the composed component (18 of them, 170 fields);
-    # a NaN typed through Hydra itself is BAD_TRAIN's.
+    # What `++field=nan` composes to, set on its component's config (each composed once); a
+    # NaN typed through Hydra itself is BAD_TRAIN's.
     *component, last = overrides
     field, value = last.removeprefix("++").split("=")
     cfg = copy.deepcopy(_composed(*component))
