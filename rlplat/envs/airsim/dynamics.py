@@ -207,9 +207,9 @@ class AirSimDynamics(DroneDynamics):
         self._run(period, before, period, what)
         hits = self.collided
         for _ in range(TOP_UPS):  # a collision any read reports counts (it clears on read)
-            lacking = period - (self._timestamp_ns - before) / 1e9
-            if not self._short(before, period) or lacking <= 0:
+            if not self._short(before, period):
                 break
+            lacking = period - (self._timestamp_ns - before) / 1e9
             log.log(logging.DEBUG if self._ran_short else logging.WARNING,
                     "simulator at %s: a step of %g s ran %.4f s short (its simContinueForTime "
                     "counts wall time: a loaded machine, or a ClockSpeed other than "
