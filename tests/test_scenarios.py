@@ -155,6 +155,45 @@ def test_a_resolution_of_the_whole_range_draws_both_ends(make_spec):
     assert drawn == {4.9, 5.0}
 
 
+def test_a_fine_grid_counts_every_value_up_to_its_high_end(make_spec):
+    # high - low divided by the step in floats falls short of a whole number (26.99999...) on
+    # such ranges: counted so, the high end was never drawn, and a one-step range was refused.
+    from decimal import Decimal
+
+    from rlplat.scenarios.spec import ParamSpec
+
+    rng = np.random.default_rng(0)
+    for _ in range(2000):
+        res = float(rng.choice([1e-6, 2e-6, 5e-6, 1e-5, 0.001, 0.1, 0.3]))
+        low = round(float(rng.uniform(-1e5, 1e5 - 1)), 6)
+        high = round(low + res * int(rng.integers(1, 1000)), 6)
+        exact = int((Decimal(str(high)) - Decimal(str(low))) // Decimal(str(res))) + 1
+        assert ParamSpec(low=low, high=high, resolution=res).levels == exact, (low, high, res)
+    one_step = ("low=91206.854378", "high=91206.854379", "resolution=0.000001")
+    spec = make_spec(*(f"scenario.params.defender_max_speed.{x}" for x in one_step))
+    assert spec.params["defender_max_speed"].levels == 2
+    fine = ("low=79.667471", "high=79.667497", "resolution=0.000001")
+    spec = make_spec("scenario.n_train=200", "scenario.n_val=50", "scenario.n_test=50",
+                     *(f"scenario.params.defender_max_speed.{x}" for x in fine))  # fmt: skip
+    i = spec.param_names.index("defender_max_speed")
+    drawn = {v for cols in generate(spec).values() for v in cols.values[:, i].tolist()}
+    assert max(drawn) == 79.667497 and len(drawn) == 27
+    # The quality report names such a grid's bins apart (they read [79.67, 79.67] to 4 digits).
+    from rlplat.scenarios import quality_report
+
+    splits = generate(spec)
+    val = splits["val"]
+    keep = val.values[:, i] < 79.667495  # empty the last bin of the val split
+    splits["val"] = dataclasses.replace(
+        val, ids=[x for x, k in zip(val.ids, keep, strict=True) if k],
+        values=val.values[keep], route=val.route[keep], strategy=val.strategy[keep],
+    )  # fmt: skip
+    report = quality_report(spec, splits)["completeness"]
+    missing = [m for m in report["missing"] if m.startswith("val: defender_max_speed")]
+    low, high = (float(x) for x in re.findall(r"\[(.*), (.*)\]", missing[0])[0])
+    assert len(missing) == 1 and low < 79.667497 == high, missing
+
+
 def test_quality_report_is_complete_when_every_grid_value_occurs(make_spec):
     # Speeds 0.2-1.2 on a 0.1 grid, one value per bin: 0.3 is written as 0.3, below the edge
     # 0.30000000000000004 that the unrounded grid put it above (a bin reported missing).
@@ -277,21 +316,40 @@ def test_load_returns_tensors_matching_files(make_spec, tmp_path):
         (
             ("scenario.params.defender_max_speed.dist=gaussian",
              "scenario.params.defender_max_speed.mean=nan"),
-            r"scenario.params.defender_max_speed.mean: expected 1 finite numbers, got \[nan\]",
+            r"scenario.params.defender_max_speed.mean: expected a finite number, got nan",
         ),
         (
             ("scenario.params.defender_max_speed.dist=gaussian",
              "scenario.params.defender_max_speed.mean=abc"),
-            r"scenario.params.defender_max_speed.mean: expected 1 numbers, got \['abc'\]",
+            r"scenario.params.defender_max_speed.mean: expected a finite number, got 'abc'",
         ),
         (
             ("scenario.params.attacker_max_speed.dist=gaussian",
              "scenario.params.attacker_max_speed.mean=40"),
             r"scenario.params.attacker_max_speed.mean: must lie in \[low=.*, high=.*\], got 40.0",
         ),
-        (("scenario.min_distance=nan",), r"scenario.min_distance: expected 1 finite numbers"),
-        (("scenario.min_altitude=abc",), r"scenario.min_altitude: expected 1 numbers, got"),
-        (("scenario.strategy_mix.nn=abc",), r"scenario.strategy_mix.nn: expected 1 numbers"),
+        (("scenario.min_distance=nan",), r"scenario.min_distance: expected a finite number"),
+        (("scenario.min_altitude=abc",), r"scenario.min_altitude: expected a finite number, got"),
+        (("scenario.strategy_mix.nn=abc",), r"scenario.strategy_mix.nn: expected a finite number"),
+        # a number, not what float() also takes: true is no 1.0, and a quoted "7.5" no 7.5
+        (
+            ("scenario.min_distance=true",),
+            r"scenario.min_distance: expected a finite number, got True",
+        ),
+        (("scenario.min_separation=true",), r"scenario.min_separation: expected a finite number"),
+        (("scenario.strategy_mix.nn=true",), r"scenario.strategy_mix.nn: expected a finite number"),
+        (
+            ("scenario.min_distance='7.5'",),
+            r"scenario.min_distance: expected a finite number, got '7.5'",
+        ),
+        (
+            ("scenario.vision_semi_axes=[true,40,13]",),
+            r"scenario.vision_semi_axes: expected 3 finite numbers",
+        ),
+        (
+            ("scenario.params.defender_max_speed.resolution='0.1'",),
+            r"scenario.params.defender_max_speed.resolution: expected a finite number, got '0.1'",
+        ),
         # a string's characters are no list ('985' was read as [9, 8, 5])
         (("scenario.vision_semi_axes='985'",), r"scenario.vision_semi_axes: expected 3 numbers"),
         (("scenario.routes=[5]",), r"scenario.routes\[0\]: expected a list of \[x, y, z\]"),
@@ -560,6 +618,43 @@ def test_a_manifest_that_is_not_json_or_lacks_a_split_is_one_line(make_spec, tmp
         ScenarioSet.load(tmp_path)
     (tmp_path / "manifest.json").write_text("{")
     with pytest.raises(ScenarioFileError, match=r"manifest.json: not JSON"):
+        ScenarioSet.load(tmp_path)
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        # a file name that is no name, or one outside the set's own directory
+        ({"file": 5}, r"splits.test.file must name a file of the set's own directory, got 5"),
+        ({"file": None}, r"splits.test.file must name a file of the set's own directory"),
+        ({"file": ["test.jsonl"]}, r"splits.test.file must name a file of the set's own"),
+        ({"file": "../test.jsonl"}, r"splits.test.file must name a file of the set's own"),
+        ({"file": "ABS"}, r"splits.test.file must name a file of the set's own"),
+        ({"file": ".."}, r"splits.test.file must name a file of the set's own"),
+    ],
+)  # fmt: skip
+def test_a_manifest_edited_by_hand_is_refused_in_one_line(make_spec, tmp_path, edit, message):
+    set_dir = tmp_path / "set"
+    write_scenario_set(make_spec(*SMALL), set_dir)
+    manifest = json.loads((set_dir / "manifest.json").read_text())
+    if edit.get("file") == "ABS":  # the same bytes, named by an absolute path
+        edit = {"file": str(set_dir / "test.jsonl")}
+    manifest["splits"]["test"].update(edit)
+    (set_dir / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ScenarioFileError, match=message) as e:
+        ScenarioSet.load(set_dir)
+    assert "\n" not in str(e.value)
+
+
+def test_a_manifest_whose_config_miscounts_a_split_is_refused(make_spec, tmp_path):
+    # A run records the set's size from its config: the two must agree.
+    write_scenario_set(make_spec(*SMALL), tmp_path)
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    manifest["config"]["n_test"] = 91
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(
+        ScenarioFileError, match=r"splits.test holds 90 scenarios, config.n_test says 91"
+    ):
         ScenarioSet.load(tmp_path)
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Callable
 from itertools import combinations
@@ -72,8 +73,16 @@ def _completeness(spec: ScenarioSpec, splits: dict[str, SplitColumns]) -> dict[s
             values = np.round(p.low + np.arange(p.levels) * p.resolution, 6)
             grid, _ = np.histogram(values, bins=edges)
             for b in np.flatnonzero((counts == 0) & (grid > 0)):
-                missing.append(f"{split}: {name} bin [{edges[b]:.4g}, {edges[b + 1]:.4g}]")
+                low, high = (_edge(x, p.resolution) for x in edges[b : b + 2])
+                missing.append(f"{split}: {name} bin [{low}, {high}]")
     return {"complete": not missing, "bins": spec.quality_bins, "missing": missing}
+
+
+def _edge(x: float, resolution: float) -> str:
+    """A bin edge with one decimal more than the grid's step, so that a fine grid's edges
+    read apart ([79.6674736, 79.6674762], not [79.67, 79.67])."""
+    decimals = min(7, max(0, -math.floor(math.log10(resolution))) + 1)
+    return f"{x:.{decimals}f}".rstrip("0").rstrip(".")
 
 
 def _ks(a: np.ndarray, b: np.ndarray) -> dict[str, float]:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -54,8 +55,18 @@ class ParamSpec:
 
     @property
     def levels(self) -> int:
-        """Number of grid values in [low, high]."""
-        return math.floor((self.high - self.low) / self.resolution + 1e-9) + 1
+        """Number of grid values in [low, high], counted in millionths (the files keep 6
+        decimals) so that a rounded ``high - low`` loses no value."""
+        step = micro(self.resolution)
+        if step < 1:  # finer than the files keep: from_dict refuses it, the float count stays
+            return math.floor((self.high - self.low) / self.resolution + 1e-9) + 1
+        return (micro(self.high) - micro(self.low)) // step + 1
+
+
+def micro(value: float) -> int:
+    """``value`` in millionths, the resolution of the files (exact for 6 decimals and
+    magnitudes up to ``MAX_MAGNITUDE``)."""
+    return round(value * 1_000_000)
 
 
 #: The most ``quality_bins``: bins per column of the completeness check (each bin's count is
@@ -277,14 +288,8 @@ class ScenarioSpec:
         for k, v in team.items():
             if v < 1 or (v > MAX_TEAM and not written):
                 raise ConfigError(f"{where}.{k}: must be in [1, {MAX_TEAM}], got {v}")
-        separation = raw.get("min_separation", 3.0)
-        try:
-            separation = float(separation)
-        except (TypeError, ValueError):
-            raise ConfigError(
-                f"{where}.min_separation: expected a number, got {separation!r}"
-            ) from None
-        if not (math.isfinite(separation) and separation >= 0):
+        separation = _finite(raw.get("min_separation", 3.0), f"{where}.min_separation")
+        if not separation >= 0:
             raise ConfigError(
                 f"{where}.min_separation: must be a finite distance >= 0 m, got {separation}"
             )
@@ -341,20 +346,27 @@ def _above_ground(v: Any, where: str) -> float:
 
 def _finite(v: Any, where: str) -> float:
     """``v`` as a finite float; a one-line :class:`ConfigError` naming ``where`` otherwise."""
-    (out,) = _floats([v], where, 1)
-    return out
+    if not _real(v) or not math.isfinite(v):
+        raise ConfigError(f"{where}: expected a finite number, got {v!r}")
+    return float(v)
+
+
+def _real(x: Any) -> bool:
+    """Whether ``x`` is a number, not what float() would also take: true is no 1.0 and "7.5"
+    is no 7.5."""
+    return isinstance(x, numbers.Real) and not isinstance(x, bool)
 
 
 def _floats(v: Any, where: str, n: int) -> tuple[float, ...]:
     if isinstance(v, (str, bytes)):  # its characters are no list of numbers ('985': 9, 8, 5)
         raise ConfigError(f"{where}: expected {n} numbers, got {v!r}")
     try:
-        out = tuple(float(x) for x in v)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{where}: expected {n} numbers, got {v!r}") from None
-    if len(out) != n or not all(math.isfinite(x) for x in out):
+        items = list(v)
+    except TypeError:
+        raise ConfigError(f"{where}: expected {n} finite numbers, got {v!r}") from None
+    if len(items) != n or not all(_real(x) and math.isfinite(x) for x in items):
         raise ConfigError(f"{where}: expected {n} finite numbers, got {v!r}")
-    return out
+    return tuple(float(x) for x in items)
 
 
 def _param(raw: Any, where: str) -> ParamSpec:
@@ -365,26 +377,29 @@ def _param(raw: Any, where: str) -> ParamSpec:
     low, high = _floats([raw.get("low"), raw.get("high")], f"{where}.low/high", 2)
     if not low < high:
         raise ConfigError(f"{where}: empty or inverted range [low={low}, high={high}]")
-    (res,) = _floats([raw.get("resolution")], f"{where}.resolution", 1)
+    res = _finite(raw.get("resolution"), f"{where}.resolution")
     for key, value in (("low", low), ("high", high)):
         if abs(value) > MAX_MAGNITUDE:
             raise ConfigError(
                 f"{where}.{key}: must lie in [-{MAX_MAGNITUDE:g}, {MAX_MAGNITUDE:g}], got {value:g}"
             )
-    # high - low is rounded (5.0 - 4.9 < 0.1): the tolerance of ParamSpec.levels
-    if not (res > 0 and (high - low) / res + 1e-9 >= 1):
-        raise ConfigError(f"{where}.resolution: must be in (0, high - low], got {res}")
-    if res < MIN_RESOLUTION or (high - low) / res >= MAX_LEVELS:
-        raise ConfigError(
-            f"{where}.resolution: {res:g} is finer than the files keep (6 decimals) or makes "
-            f"more than {MAX_LEVELS:,} values in [low={low:g}, high={high:g}]; at least "
-            f"{max(MIN_RESOLUTION, (high - low) / (MAX_LEVELS - 1)):.6g}"
-        )
+    too_fine = ConfigError(
+        f"{where}.resolution: {res:g} is finer than the files keep (6 decimals) or makes "
+        f"more than {MAX_LEVELS:,} values in [low={low:g}, high={high:g}]; at least "
+        f"{max(MIN_RESOLUTION, (high - low) / (MAX_LEVELS - 1)):.6g}"
+    )
+    if 0 < res < MIN_RESOLUTION:
+        raise too_fine
     for key, value in (("low", low), ("high", high), ("resolution", res)):
         if round(value, 6) != value:  # the files keep 6 decimals: grid values would move
             raise ConfigError(
                 f"{where}.{key}: at most 6 decimals (what the files keep), got {value!r}"
             )
+    # Counted in millionths, exactly: high - low in floats is rounded (5.0 - 4.9 < 0.1).
+    if not 0 < micro(res) <= micro(high) - micro(low):
+        raise ConfigError(f"{where}.resolution: must be in (0, high - low], got {res}")
+    if (micro(high) - micro(low)) // micro(res) + 1 > MAX_LEVELS:
+        raise too_fine
     dist = raw.get("dist", "uniform")
     if dist not in DISTRIBUTIONS:
         raise ConfigError(

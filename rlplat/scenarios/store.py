@@ -319,15 +319,26 @@ class ScenarioSet:
                     f"{path / MANIFEST}: splits.{split} must name its file, sha256 and count, "
                     f"got {entry!r:.80}"
                 )
-            data = _read(path / entry["file"])
+            name = entry["file"]
+            if not (isinstance(name, str) and name not in (".", "..") and Path(name).name == name):
+                raise ScenarioFileError(
+                    f"{path / MANIFEST}: splits.{split}.file must name a file of the set's own "
+                    f"directory, got {name!r:.80}"
+                )
+            data = _read(path / name)
             if sha256_bytes(data) != entry["sha256"]:
                 raise ScenarioFileError(
-                    f"{path / entry['file']}: sha256 differs from the manifest "
+                    f"{path / name}: sha256 differs from the manifest "
                     "(file truncated or edited since generation)"
                 )
-            records = _records(data, spec, path / entry["file"], entry["count"])
+            records = _records(data, spec, path / name, entry["count"])
+            if len(records) != spec.counts[split]:  # what a run records as the set's size
+                raise ScenarioFileError(
+                    f"{path / MANIFEST}: splits.{split} holds {len(records)} scenarios, "
+                    f"config.n_{split} says {spec.counts[split]}"
+                )
             ids[split] = [r["id"] for r in records]
-            splits[split] = _to_tensors(records, spec, path / entry["file"])
+            splits[split] = _to_tensors(records, spec, path / name)
         routes = torch.tensor(spec.routes, dtype=torch.float32)
         return cls(path, manifest, spec, ids, splits, routes)
 
