@@ -159,6 +159,17 @@ def test_best_checkpoint_loads_as_a_deterministic_policy(scenarios, tmp_path, ti
     a, b = evaluate(env, policy), evaluate(env, policy)
     assert a.capture_rate == b.capture_rate == pytest.approx(summary["test_capture_rate"])
     assert torch.equal(a.returns, b.returns)
+    # Called as it is, outside any exploration context, it flies that deterministic action
+    # too; deterministic=False samples, as the actor trained.
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    td = env.reset()
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        mean = policy(td.clone())["action"]
+    assert torch.equal(policy(td.clone())["action"], mean)
+    sampling = load_policy(tmp_path / "checkpoints" / "best.pt", env.action_spec[0],
+                           deterministic=False)  # fmt: skip
+    assert not torch.equal(sampling(td.clone())["action"], mean)
 
 
 def test_keep_checkpoints_keeps_each_validations_policy(scenarios, tmp_path, tiny_run):

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
+from torchrl.envs.utils import ExplorationType
 
 from rlplat.agents.sac import NetSpec, SelectFeatures, actor_body, make_actor
 from rlplat.errors import ConfigError
@@ -126,9 +127,17 @@ def check_same_interface(
             )
 
 
-def load_policy(path: str | Path, action_spec, device: torch.device | str = "cpu"):
-    """The deterministic-capable actor saved in a checkpoint (``best.pt`` or ``last.pt``)."""
-    return actor_from_state(load_checkpoint(path), action_spec, device)
+def load_policy(
+    path: str | Path, action_spec, device: torch.device | str = "cpu", *, deterministic=True
+):
+    """The actor saved in a checkpoint (``best.pt`` or ``last.pt``), flying the deterministic
+    action (tanh of the mean: what evaluation, the controller file and the export fly) unless
+    an ``ExplorationType`` is set around the call; ``deterministic=False`` samples, as the
+    actor trained."""
+    actor = actor_from_state(load_checkpoint(path), action_spec, device)
+    if deterministic:
+        actor.module[-1].default_interaction_type = ExplorationType.DETERMINISTIC
+    return actor
 
 
 def saved_net(state: dict[str, Any]) -> NetSpec:
