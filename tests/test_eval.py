@@ -3,6 +3,7 @@ import inspect
 import json
 import logging
 import math
+import re
 import shutil
 from pathlib import Path
 
@@ -548,6 +549,14 @@ def test_evaluate_yaml_is_evaluate_run_with_its_defaults():
     for key in keys - {"run_dir"}:
         default = params[key].default
         assert yaml[key] == (list(default) if isinstance(default, tuple) else default), key
+    # The policy: line's comment lists every name evaluate.py flies.
+    from rlplat.agents.policies import POLICIES
+
+    (line,) = [x for x in (ROOT / "conf" / "evaluate.yaml").read_text().splitlines()
+               if x.startswith("policy:")]  # fmt: skip
+    comment = re.sub(r"\([^)]*\)", "", line.split("#", 1)[1])  # less its asides
+    listed = {name.strip() for name in comment.split("|")}
+    assert listed == {"checkpoint", "onnx", "c", *POLICIES}, line
     cfg = compose_config("evaluate", ["run_dir=x"])
     assert (cfg.policy, cfg.ckpt, cfg.split, cfg.strict_scenarios) == (
         "checkpoint",

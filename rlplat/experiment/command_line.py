@@ -70,7 +70,8 @@ def hydra_main(
             if resume_subdir is not None and _resumes(sys.argv[1:]):
                 # The run's .hydra/ stays as it was launched (what aggregate names a variant
                 # by); the resume's own goes beside it.
-                sys.argv.append(f"hydra.output_subdir={resume_subdir}")
+                # First: after a flag (`--cfg job`) it would be read as the flag's value.
+                sys.argv.insert(1, f"hydra.output_subdir={resume_subdir}")
             return run()
 
         return entry
