@@ -386,6 +386,34 @@ def test_pure_pursuit_team_catches_more_than_random(team_sets):
     assert chase.capture_rate > evaluate(env, random).capture_rate
 
 
+def test_an_evaluation_measures_how_near_the_attackers_came_to_each_other(team_sets):
+    from rlplat.eval.tables import NEAR_MISS_M, episode_rows, summarize
+
+    env = make_env("action=velocity", scenarios=team_sets[2, 1], split="val", num_envs=16)
+    chase = evaluate(env, make_scripted_policy("pure_pursuit", env), record=True)
+    # From the recorded paths: the least distance between the two attackers while both fly.
+    a, b = chase.positions[:, :, 0], chase.positions[:, :, 1]
+    up = (a[..., 2] > env.ground_altitude) & (b[..., 2] > env.ground_altitude)
+    expected = (a - b).norm(dim=-1).masked_fill(~up, float("inf")).amin(1)
+    torch.testing.assert_close(chase.attacker_separation, expected)
+    # Both chasing one defender, they close on each other: pure pursuit converges.
+    starts = team_sets[2, 1].split("val")["attacker_start"]
+    assert (chase.attacker_separation < (starts[:, 0] - starts[:, 1]).norm(dim=-1)).all()
+    rows = episode_rows(chase, team_sets[2, 1], "val", env.routes.cpu(), 2)
+    assert [r["attacker_separation_m"] for r in rows] == chase.attacker_separation.tolist()
+    sep = summarize(rows, list(env.reward_fn.weights), [1.0])["attacker_separation"]
+    assert sep["least_m"] == pytest.approx(chase.attacker_separation.min().item())
+    assert sep["near_misses"] == int((chase.attacker_separation < NEAR_MISS_M).sum())
+    # One attacker: no team-mate to come near, no column and no summary entry.
+    one = make_env("action=velocity", "env.attackers=1", scenarios=team_sets[2, 1], split="val",
+                   num_envs=16)  # fmt: skip
+    alone = evaluate(one, make_scripted_policy("pure_pursuit", one))
+    assert alone.attacker_separation.isnan().all()
+    rows = episode_rows(alone, team_sets[2, 1], "val", one.routes.cpu(), 1)
+    assert "attacker_separation_m" not in rows[0]
+    assert "attacker_separation" not in summarize(rows, list(one.reward_fn.weights), [1.0])
+
+
 @pytest.mark.slow
 def test_a_learned_two_vs_one_policy_beats_a_random_one(easy_pursuit, tmp_path, record_property):
     from omegaconf import OmegaConf
@@ -478,6 +506,8 @@ def test_a_team_run_and_a_lone_run_evaluate_on_the_same_defenders(
     pair_rows, alone_rows = rows(Path(team) / "eval" / "val-best"), rows(alone.out_dir)
     assert "attacker1_max_speed" in pair_rows[0] and "attacker1_max_speed" not in alone_rows[0]
     assert "team_speed_ratio" not in alone_rows[0]
+    assert "attacker_separation_m" in pair_rows[0] and "attacker_separation_m" not in alone_rows[0]
+    assert pair["attacker_separation"]["episodes"] == len(pair_rows)
     for r in pair_rows:  # the fastest attacker of the pair over the defender (CSV: 6 digits)
         fastest = max(float(r["attacker_max_speed"]), float(r["attacker1_max_speed"]))
         ratio = fastest / float(r["defender_max_speed"])

@@ -69,6 +69,20 @@ def outcome_table(groups: Mapping[str, Mapping[str, Any]], first: str) -> list[s
     return lines
 
 
+def _separation_lines(s: Mapping[str, Any]) -> list[str]:
+    """A team's line on how near its attackers came to each other (nothing stops them)."""
+    sep = s.get("attacker_separation")
+    if not sep or not sep["episodes"]:
+        return []
+    return [
+        "",
+        f"Attackers' least separation from each other (nothing in the simulator keeps them "
+        f"apart): {_fmt(sep['least_m'], 2)} m at least, median over episodes "
+        f"{_fmt(sep['median_m'], 2)} m; {sep['near_misses']} of {sep['episodes']} episodes "
+        f"within {sep['near_miss_m']:g} m.",
+    ]
+
+
 def _artifact_lines(s: Mapping[str, Any]) -> list[str]:
     """What an evaluation of an exported artifact adds: its files, and the episodes whose
     outcome differs from the torch policy's on the same scenarios."""
@@ -138,6 +152,7 @@ def write_report(
         f"{_fmt(s['mean_steps'], 1)}. Mean episode sum of each reward term: "
         + ", ".join(f"{k} {v:.2f}" for k, v in s["reward_terms"].items())
         + ".",
+        *_separation_lines(s),
         "",
     ]
     for key, title, first in (

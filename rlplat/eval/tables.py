@@ -74,6 +74,8 @@ def episode_rows(
     keys = ("scenario_index", "captured", "grounded", "time_to_capture", "length")
     keys += ("min_distance", "visible_fraction", "route_fraction", "evasion", "returns")
     out = {k: getattr(results, k).tolist() for k in keys}
+    separation = results.attacker_separation
+    separation = None if separation is None else separation.tolist()
     terms = {k: v.tolist() for k, v in results.term_sums.items()}
     caught_count = results.defender_caught.sum(-1).tolist()
     bound = _flags(interceptable)
@@ -118,6 +120,11 @@ def episode_rows(
             "time_to_capture_s": out["time_to_capture"][e] if captured else None,
             "steps": out["length"][e],
             "min_distance_m": out["min_distance"][e],
+            **(
+                {"attacker_separation_m": _or_none(separation[e])}
+                if flown > 1 and separation is not None
+                else {}
+            ),
             "visible_fraction": out["visible_fraction"][e],
             "route_fraction": out["route_fraction"][e],
             "evasion": out["evasion"][e],
@@ -126,6 +133,11 @@ def episode_rows(
         }
         rows.append(row)
     return rows
+
+
+def _or_none(x: float) -> float | None:
+    """``x``, None (an empty cell) where it is NaN."""
+    return None if math.isnan(x) else x
 
 
 def _flags(bound: torch.Tensor | None) -> list[bool | None] | None:
@@ -157,8 +169,12 @@ def summarize(rows: list[dict[str, Any]], terms: list[str], edges: list[float]) 
     routes = sorted({(r["route"], r["route_direction"]) for r in rows})
     strategies = {i: s for i, s in enumerate(STRATEGIES)}
     labels = speed_ratio_labels(edges)
+    team = {}
+    if rows and "attacker_separation_m" in rows[0]:
+        team["attacker_separation"] = separation_stats(col("attacker_separation_m"))
     return {
         **outcome_stats(**columns),
+        **team,
         "ground_rate": float(np.mean(col("grounded"))),
         "mean_steps": float(np.mean(col("steps"))),
         "reward_terms": {k: float(np.mean(col(f"reward_{k}"))) for k in terms},
@@ -174,6 +190,25 @@ def summarize(rows: list[dict[str, Any]], terms: list[str], edges: list[float]) 
         "by_speed_ratio": breakdown(
             speed_ratio_bin(col("speed_ratio"), edges), dict(enumerate(labels)), columns
         ),
+    }
+
+
+#: Team-mates nearer than this (m) count as a near miss of each other: two small quadrotors'
+#: rotors and their downwash meet well before their centres do.
+NEAR_MISS_M = 1.0
+
+
+def separation_stats(separation: np.ndarray) -> dict[str, Any]:
+    """How near a team's attackers came to each other, from each episode's least separation
+    (NaN where fewer than two were in play): the least and the median over the episodes, and
+    how many came within :data:`NEAR_MISS_M`."""
+    x = separation[~np.isnan(separation)]
+    return {
+        "episodes": int(x.size),
+        "least_m": float(x.min()) if x.size else None,
+        "median_m": float(np.median(x)) if x.size else None,
+        "near_miss_m": NEAR_MISS_M,
+        "near_misses": int((x < NEAR_MISS_M).sum()),
     }
 
 
