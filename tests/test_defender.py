@@ -264,10 +264,22 @@ def test_the_controller_command_refuses_a_bad_out_and_writes_nothing_half(
     for out, message in (
         (tmp_path, f"error: out: {tmp_path} is a directory; name the controller file"),
         (a_file / "x.pt", f"error: out: cannot write to {run / 'controller.pt'}: "),
+        (tmp_path / "x.onnx", "error: out: a controller file ends in .pt (its card: <out>.json)"),
+        # an existing file is replaced only when it is a controller file: not a run's own
+        # checkpoint, nor any other file that happens to end in .pt
+        (run / "checkpoints" / "best.pt", "error: out: "),
+        (run / "config.pt", "error: out: "),
     ):
+        if out.name == "config.pt":
+            out.write_text("seed: 0\n")
+        before = out.read_bytes() if out.is_file() else None
         with pytest.raises(SystemExit):
             main([str(run), str(out)])
-        assert capsys.readouterr().err.startswith(message)
+        err = capsys.readouterr().err
+        assert err.startswith(message) and err.count("\n") == 1, err
+        if before is not None:
+            assert "exists and is no controller file; not replacing it" in err
+            assert out.read_bytes() == before
     # A card that cannot be made (the run's scenario set gone) leaves no controller file.
     out = tmp_path / "x.pt"
 
@@ -282,3 +294,5 @@ def test_the_controller_command_refuses_a_bad_out_and_writes_nothing_half(
     monkeypatch.chdir(run)
     main([".", str(out), "--no-card"])
     assert load_checkpoint(out)["source"]["run_dir"] == run.name
+    main([".", str(out), "--no-card", "--ckpt", "last"])  # a controller file is replaced
+    assert load_checkpoint(out)["source"]["checkpoint"] == "last"

@@ -108,8 +108,22 @@ def check_out(out: str | Path) -> Path:
     out = Path(out)
     if out.is_dir():
         raise ConfigError(f"out: {out} is a directory; name the controller file (e.g. {out}/x.pt)")
+    if out.suffix != ".pt":
+        raise ConfigError(f"out: a controller file ends in .pt (its card: <out>.json), got {out}")
+    if out.exists() and not _is_controller(out):  # a run's checkpoint, or any other file
+        raise ConfigError(f"out: {out} exists and is no controller file; not replacing it")
     check_writable_dir(out.parent, "out")
     return out
+
+
+def _is_controller(path: Path) -> bool:
+    """Whether ``path`` holds a controller file (:func:`export_controller`), which an export
+    may replace: an rlplat checkpoint with a source and no training state."""
+    try:
+        state = load_checkpoint(path)
+    except ConfigError:
+        return False
+    return "source" in state and "counters" not in state
 
 
 @exit_on_error
