@@ -501,6 +501,21 @@ def test_cli_an_out_dir_that_is_no_folder_name_is_one_line(
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("marker", ["config.yaml", "checkpoints", "episodes.csv"])
+def test_cli_an_out_dir_that_holds_a_run_is_refused(tmp_path, marker, refused_in_process):
+    # A set's files would land among a run's own (and its manifest.json beside them).
+    run = tmp_path / "run"
+    run.mkdir()
+    if marker == "checkpoints":
+        (run / marker).mkdir()
+    else:
+        (run / marker).write_text("seed: 0\n")
+    before = sorted(p.name for p in run.iterdir())
+    stderr = refused_in_process("-m", "rlplat.scenarios", f"out_dir={run}", *SMALL, cwd=tmp_path)
+    assert stderr == f"error: out_dir: {run} holds a run ({marker}); give the set its own folder\n"
+    assert sorted(p.name for p in run.iterdir()) == before
+
+
 def test_cli_an_out_dir_that_cannot_be_made_is_one_line_before_any_work(tmp_path):
     (tmp_path / "a-file").write_text("")
     r = _cli("out_dir=a-file/set", *SMALL, cwd=tmp_path)

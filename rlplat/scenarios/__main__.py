@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
@@ -9,6 +11,9 @@ from rlplat.errors import ConfigError
 from rlplat.experiment.command_line import hydra_main
 from rlplat.experiment.rules import Text
 from rlplat.scenarios import ScenarioSpec, format_quality, write_scenario_set
+
+#: What marks a folder as a training run's, or an evaluation's: no place for a scenario set.
+RUN_FILES = ("config.yaml", "summary.json", "checkpoints", "episodes.csv")
 
 
 def spec_of(cfg: DictConfig) -> ScenarioSpec:
@@ -18,6 +23,11 @@ def spec_of(cfg: DictConfig) -> ScenarioSpec:
     problem = Text()(cfg.out_dir)  # out_dir= would write the set into the working directory
     if problem:
         raise ConfigError(f"out_dir: {problem}; give out_dir=DIR, the folder for the set")
+    held = [name for name in RUN_FILES if (Path(cfg.out_dir) / name).exists()]
+    if held:  # a set's four files would land among a run's own
+        raise ConfigError(
+            f"out_dir: {cfg.out_dir} holds a run ({held[0]}); give the set its own folder"
+        )
     try:
         scenario = OmegaConf.to_container(cfg.scenario, resolve=True)
     except OmegaConfBaseException as e:  # an interpolation that does not resolve
