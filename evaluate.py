@@ -4,6 +4,8 @@ Rebuilds env and policy from the run directory and replays every scenario of the
 conf/evaluate.yaml. ``compare=true`` also flies the classical baselines and writes the table.
 """
 
+from pathlib import Path
+
 from omegaconf import DictConfig
 
 from rlplat.experiment.command_line import hydra_main
@@ -15,7 +17,18 @@ def check(cfg: DictConfig) -> None:
     validate_evaluate_config(cfg)
 
 
-@hydra_main("evaluate", check)
+def check_job(cfg: DictConfig, job_dir, field: str) -> None:
+    """The run (and its checkpoint) each job flies exists: before Hydra makes a sweep's
+    folder in it (``<run_dir>/eval``), or the first job of a sweep starts."""
+    from rlplat.agents.export import ARTIFACTS
+    from rlplat.experiment.evaluation import checkpoint_path, load_run_config
+
+    load_run_config(cfg.run_dir)
+    if cfg.policy == "checkpoint" or cfg.policy in ARTIFACTS:
+        checkpoint_path(Path(cfg.run_dir), cfg.ckpt)
+
+
+@hydra_main("evaluate", check, validate_job=check_job)
 def main(cfg: DictConfig) -> None:
     from rlplat.experiment.evaluation import evaluate_from_config
 

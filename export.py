@@ -5,6 +5,8 @@ Writes ``DIR/export/<ckpt>/``: ``policy.onnx``, ``policy.h`` + ``policy.c`` (C99
 timing); see conf/export.yaml. ``controller=FILE out_dir=DIR`` exports a controller file.
 """
 
+from pathlib import Path
+
 from omegaconf import DictConfig
 
 from rlplat.experiment.command_line import hydra_main
@@ -16,7 +18,20 @@ def check(cfg: DictConfig) -> None:
     validate_export_config(cfg)
 
 
-@hydra_main("export", check)
+def check_job(cfg: DictConfig, job_dir, field: str) -> None:
+    """The run and checkpoint (or the controller file) each job exports exists, before the
+    first job of a sweep starts (Hydra writes the sweep's record first)."""
+    from rlplat.errors import ConfigError
+    from rlplat.experiment.evaluation import checkpoint_path, load_run_config
+
+    if cfg.run_dir is not None:
+        load_run_config(cfg.run_dir)
+        checkpoint_path(Path(cfg.run_dir), cfg.ckpt)
+    elif not Path(cfg.controller).is_file():
+        raise ConfigError(f"controller: no file at {cfg.controller}")
+
+
+@hydra_main("export", check, validate_job=check_job)
 def main(cfg: DictConfig) -> None:
     from rlplat.experiment.export import export_from_config
 

@@ -524,6 +524,28 @@ def test_another_scenario_set_warns_or_is_refused(trained_run, write_small_set, 
     assert not (tmp_path / "s").exists()
 
 
+def test_a_sweep_over_a_missing_run_or_checkpoint_is_refused_before_hydra_writes(
+    trained_run, tmp_path, refused_in_process
+):
+    # Hydra writes a sweep's record (multirun.yaml) into <run_dir>/eval before its first job,
+    # and each job flies on its own: the run and each job's checkpoint are checked first.
+    nowhere = tmp_path / "nowhere"
+    policies = "policy=pure_pursuit,proportional_navigation"
+    err = refused_in_process("evaluate.py", "-m", f"run_dir={nowhere}", policies)
+    assert err == f"error: run_dir: no run directory at {nowhere} (in the sweep's job " \
+                  "policy=pure_pursuit)\n"  # fmt: skip
+    assert not nowhere.exists()
+    missing = tmp_path / "x.pt"
+    err = refused_in_process("evaluate.py", "-m", f"run_dir={trained_run}", f"ckpt=best,{missing}")
+    assert err.startswith(f"error: ckpt: no checkpoint at {missing}") and err.count("\n") == 1
+    assert not (trained_run / "eval" / "multirun.yaml").exists()
+    for args in ([f"run_dir={nowhere}", "ckpt=best,last"], [f"controller={missing}",
+                 f"out_dir={tmp_path / 'e'}", "split=val,test"]):  # fmt: skip
+        err = refused_in_process("export.py", "-m", *args, cwd=tmp_path)
+        assert err.startswith(("error: run_dir: no run directory", "error: controller: no file"))
+        assert list(tmp_path.iterdir()) == []  # no multirun/ folder in the working directory
+
+
 def test_cli_bad_input_is_one_line(tmp_path, run_python):
     res = run_python("evaluate.py", f"run_dir={tmp_path / 'nowhere'}")
     assert res.returncode == 2
