@@ -610,6 +610,19 @@ def test_no_simulator_at_the_address_names_it_and_how_to_start_one(scenarios):
     )
 
 
+def test_training_without_a_simulator_is_refused_before_the_run_directory(
+    scenarios, tiny, tmp_path, refused_in_process
+):
+    # train.py's preflight asks each endpoint before Hydra makes the run directory.
+    port, run = free_port(), tmp_path / "run"
+    err = refused_in_process(
+        "train.py", *tiny, *airsim(f"127.0.0.1:{port}"), "algo.num_envs=1",
+        f"scenarios_dir={scenarios.path}", f"hydra.run.dir={run}",
+    )  # fmt: skip
+    assert err.startswith(f"error: dynamics.endpoints: no simulator at 127.0.0.1:{port} ")
+    assert err.count("\n") == 1 and not run.exists()
+
+
 def test_a_simulator_that_accepts_but_never_answers_fails_within_the_connect_timeout(
     server, scenarios
 ):
