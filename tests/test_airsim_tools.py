@@ -287,6 +287,28 @@ def test_sim2sim_on_the_servers_constants_agrees_and_reports_per_scenario(tiny_r
     assert float(table.splitlines()[-2].split()[-1]) > 10 * max(same, 1e-3)
 
 
+def test_sim2sim_without_a_simulator_stops_before_the_embedded_leg(tiny_run_dir, tmp_path):
+    # The reference leg flies first: a simulator not started must not cost its minutes.
+    import socket
+    import time
+
+    from rlplat.envs.airsim.client import AirSimError
+
+    with socket.socket() as s:  # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    out, t0 = tmp_path / "s2s", time.monotonic()
+    with pytest.raises(
+        AirSimError, match=rf"^dynamics.endpoints: no simulator at 127.0.0.1:{port} "
+    ):
+        sim2sim_command([f"run_dir={tiny_run_dir}", f"dynamics.endpoints=[127.0.0.1:{port}]",
+                         "dynamics.connect_timeout_s=2", f"out={out}"])  # fmt: skip
+    assert time.monotonic() - t0 < 10 and not out.exists()
+    with pytest.raises(ConfigError, match=r"^out_dir: cannot write to .*: is a file"):
+        sim2sim_command([f"run_dir={tiny_run_dir}", f"dynamics.endpoints=[127.0.0.1:{port}]",
+                         f"out={tiny_run_dir / 'config.yaml'}"])  # fmt: skip
+
+
 def test_position_gaps_count_the_steps_both_episodes_ran():
     from rlplat.experiment.sim2sim import position_gaps
 

@@ -30,6 +30,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from rlplat.agents.checkpoint import actor_from_state, load_checkpoint
+from rlplat.envs.airsim.client import check_simulators
 from rlplat.envs.airsim.recording import Recorder, write_recording_csv
 from rlplat.envs.pursuit import PursuitEnv
 from rlplat.errors import ConfigError
@@ -43,7 +44,7 @@ from rlplat.experiment.evaluation import (
 )
 from rlplat.experiment.factory import build_env, eval_num_envs, resolve_scenarios
 from rlplat.experiment.schema import validate_dynamics_swap
-from rlplat.io import atomic_write_text
+from rlplat.io import atomic_write_text, check_writable_dir
 from rlplat.scenarios import SPLITS, ScenarioSet
 
 log = logging.getLogger(__name__)
@@ -211,8 +212,10 @@ def sim2sim(
     path = checkpoint_path(run_dir, ckpt)
     name = checkpoint_label(run_dir, ckpt, path)
     out_dir = Path(out_dir) if out_dir else run_dir / "eval" / f"sim2sim-{split}-{name}"
+    check_writable_dir(out_dir, "out_dir")
     state = load_checkpoint(path)
     scenarios = resolve_scenarios(cfg, scenarios_dir or cfg.get("scenarios_dir"))
+    check_simulators(airsim)  # before the embedded leg's minutes: a simulator not started
 
     # The two legs: the same scenarios, policy and config; only the dynamics differ.
     legs = {

@@ -368,6 +368,8 @@ def preflight(cfg: DictConfig, run_dir: Path | None, field: str = "hydra.run.dir
     if cfg.dynamics.name == "airsim":
         # Building its env connects to the simulators, which train() does; here only whether
         # each answers, so that a simulator not started leaves no run directory behind.
+        from rlplat.envs.airsim.client import check_simulators
+
         check_simulators(cfg.dynamics)
         return
     env = build_env(cfg, scenarios=start.scenarios, split="train", num_envs=1)
@@ -378,20 +380,6 @@ def preflight(cfg: DictConfig, run_dir: Path | None, field: str = "hydra.run.dir
     if start.init is not None:
         warm_start_features(*start.init, net, interface, env)
     env.close()
-
-
-def check_simulators(dynamics: DictConfig) -> None:
-    """Each of ``dynamics.endpoints`` answers (an AirSim RPC server there): one line naming
-    the field and the first that does not."""
-    from rlplat.envs.airsim.client import AirSimClient, AirSimError
-
-    for endpoint in dynamics.endpoints:
-        try:
-            client = AirSimClient(endpoint, connect_timeout_s=dynamics.connect_timeout_s,
-                                  timeout_s=dynamics.timeout_s)  # fmt: skip
-        except AirSimError as e:
-            raise AirSimError(f"dynamics.endpoints: {e}") from None
-        client.close()
 
 
 def make_run_dir(run_dir: str | Path | None) -> Path:

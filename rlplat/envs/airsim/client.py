@@ -30,7 +30,7 @@ import logging
 import math
 import socket
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from types import SimpleNamespace
 from typing import Any
@@ -709,3 +709,19 @@ class AirSimClient:
         if self._api is not None and self._api.client._transport is not None:
             self._api.client.close()
         self._api = None
+
+
+def check_simulators(dynamics: Mapping[str, Any]) -> None:
+    """Each of a ``dynamics=airsim`` node's ``endpoints`` answers (an AirSim RPC server
+    there), before any work that needs them: one line naming the field and the first that
+    does not."""
+    for endpoint in dynamics["endpoints"]:
+        try:
+            client = AirSimClient(
+                endpoint,
+                connect_timeout_s=dynamics["connect_timeout_s"],
+                timeout_s=dynamics["timeout_s"],
+            )
+        except AirSimError as e:
+            raise AirSimError(f"dynamics.endpoints: {e}") from None
+        client.close()
