@@ -587,5 +587,7 @@ def test_every_job_of_a_sweep_is_checked():
     # Hydra's own questions are Hydra's to answer.
     seen.clear()
     check_command_line("train", ["--help"], seen.append)
-    check_command_line("train", ["-m", "drone=glob(attacker_v1*)"], seen.append)
     assert seen == []
+    # A glob over one of conf/'s groups: each of its options, as the sweeper expands it.
+    check_command_line("train", ["-m", "drone=glob(attacker_v1*)"], seen.append)
+    assert sorted(c.drone.name for c in seen) == [f"attacker_v1{x}" for x in ("", 0, 1, 2, 3)]

@@ -658,6 +658,20 @@ def test_a_sweep_with_one_bad_job_starts_none(tmp_path, refused_in_process):
         "error: seed: must be an integer in [0, 4294967295], got -1 (in the sweep's job seed=-1)\n"
     )
     assert not sweep.exists()
+    # A glob over a config group is expanded as Hydra's sweeper does it (include, exclude),
+    # and every job checked; an interval, which that sweeper refuses in a traceback, is a line.
+    stderr = refused_in_process("train.py", "-m", "drone=glob(attacker_v1*,attacker_v10)",
+                                "seed=0,abc", f"hydra.sweep.dir={sweep}")  # fmt: skip
+    assert stderr == (
+        "error: seed: must be an integer in [0, 4294967295], got 'abc' (in the sweep's job "
+        "drone=attacker_v1 seed=abc)\n"
+    )
+    stderr = refused_in_process("train.py", "-m", "drone=glob(attacker_v1*,attacker_v1)",
+                                "algo.gamma=2", f"hydra.sweep.dir={sweep}")  # fmt: skip
+    assert stderr.endswith("(in the sweep's job drone=attacker_v10)\n"), stderr
+    stderr = refused_in_process("train.py", "-m", "seed=interval(0,1)", f"hydra.sweep.dir={sweep}")
+    assert stderr.startswith("error: seed=interval(0,1): an interval is sampled by an optimising")
+    assert stderr.count("\n") == 1 and not sweep.exists()
 
 
 def test_run_directories_that_no_run_can_have_are_refused_before_any_work(

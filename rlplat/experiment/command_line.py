@@ -151,16 +151,23 @@ def check_command_line(
         o.key_or_group == "hydra.mode" and o.get_value_element_as_str() == "MULTIRUN"
         for o in parsed
     )
+    interval = next((o for o in parsed if o.value_type == ValueType.INTERVAL_SWEEP), None)
+    if multirun and interval is not None:  # Hydra's own refusal is a traceback
+        raise ConfigError(
+            f"{interval.input_line}: an interval is sampled by an optimising sweeper; the basic "
+            "sweeper here runs lists, range(...) and glob(...) of a config group"
+        )
     if not multirun:
         jobs = [list(args.overrides)]
-    elif any(o.value_type == ValueType.GLOB_CHOICE_SWEEP for o in parsed) or any(
-        o.is_sweep_override() and not o.is_discrete_sweep() for o in parsed
+    elif any(
+        o.value_type == ValueType.GLOB_CHOICE_SWEEP and _group_options(o.key_or_group) is None
+        for o in parsed
     ):
-        return  # a glob or an interval: the sweeper expands it (or refuses it) itself
+        return  # a glob over a group that is not ours (Hydra's plugins): the sweeper expands it
     else:
         jobs = _sweep_jobs(parsed)
     exact = not multirun or math.prod(
-        len(list(o.sweep_string_iterator())) if o.is_sweep_override() else 1 for o in parsed
+        len(_swept_values(o)) if o.is_sweep_override() else 1 for o in parsed
     ) == len(jobs)  # fmt: skip
     swept = {o.get_key_element() for o in parsed if o.is_sweep_override()}
     field = "hydra.sweep.dir" if multirun else "hydra.run.dir"
@@ -244,7 +251,7 @@ def _sweep_jobs(parsed: Sequence[Any]) -> list[list[str]]:
     for o in parsed:
         key = o.get_key_element()
         if o.is_sweep_override():
-            choices[key] = [f"{key}={v}" for v in o.sweep_string_iterator()]
+            choices[key] = [f"{key}={v}" for v in _swept_values(o)]
         else:
             value = o.get_value_element_as_str()
             choices[key] = [key if value is None else f"{key}={value}"]
@@ -253,6 +260,23 @@ def _sweep_jobs(parsed: Sequence[Any]) -> list[list[str]]:
         return [list(job) for job in itertools.product(*lists)]
     first = [v[0] for v in lists]
     return [first[:i] + [value] + first[i + 1 :] for i, v in enumerate(lists) for value in v]
+
+
+def _swept_values(o: Any) -> list[str]:
+    """A sweep override's values: a glob's as Hydra expands it, on the group's options."""
+    from hydra.core.override_parser.types import ValueType
+
+    if o.value_type == ValueType.GLOB_CHOICE_SWEEP:
+        return list(o.value().filter(_group_options(o.key_or_group)))
+    return list(o.sweep_string_iterator())
+
+
+def _group_options(group: str) -> list[str] | None:
+    """The options of a config group of conf/ (its files' names), None for another group."""
+    folder = CONF_DIR / group.lstrip("+")
+    if not folder.is_dir():
+        return None
+    return sorted(p.stem for p in folder.glob("*.yaml"))
 
 
 def _compose(config_name: str, overrides: list[str]) -> Any:
