@@ -29,9 +29,31 @@ from rlplat.cli import exit_on_error
 VERBS = ("settings", "serve", "calibrate", "replay", "sim2sim")
 
 
+HELP = {"-h", "--help"}
+
+
+def usage(verb: str) -> str:
+    """The module docstring's lines on ``verb`` (its line under Verbs, then the deeper ones)."""
+    lines = __doc__.splitlines()
+
+    def heads(line: str) -> bool:  # a verb's own line: indented by four, no more
+        return line.startswith("    ") and not line.startswith("     ")
+
+    start = next(i for i, line in enumerate(lines) if heads(line) and line.split()[0] == verb)
+    end = next((i for i in range(start + 1, len(lines)) if heads(lines[i])), len(lines))
+    text = "\n".join(line.strip() for line in lines[start:end] if line.strip())
+    return f"python -m rlplat.airsim {text}"
+
+
 @exit_on_error
 def main(argv: Sequence[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
+    if args and args[0] in HELP:
+        print(__doc__.strip())
+        return 0
+    if len(args) > 1 and args[0] in VERBS and args[0] != "serve" and HELP & set(args[1:]):
+        print(usage(args[0]))  # serve's own --help is argparse's
+        return 0
     if not args or args[0] not in VERBS:
         given = repr(args[0]) if args else "none"
         print(

@@ -51,6 +51,24 @@ def test_settings_command_writes_the_teams_settings(tmp_path, overrides, names):
     assert list(settings["Vehicles"]) == names
 
 
+@pytest.mark.parametrize("verb", ["", "settings", "calibrate", "replay", "sim2sim"])
+def test_help_of_each_verb_exits_zero_and_does_nothing(verb, capsys, tmp_path, monkeypatch):
+    from rlplat.airsim import main
+
+    monkeypatch.chdir(tmp_path)  # nothing may be written here
+    assert main([*([verb] if verb else []), "--help"]) == 0
+    out = capsys.readouterr().out
+    if verb:
+        assert out.startswith(f"python -m rlplat.airsim {verb} ") and "Verbs" not in out
+        others = tuple(
+            v for v in ("settings", "serve", "calibrate", "replay", "sim2sim") if v != verb
+        )
+        assert not any(line.startswith(others) for line in out.splitlines()), out
+    else:
+        assert "Verbs:" in out and all(v in out for v in ("calibrate", "sim2sim", "serve"))
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_settings_command_refuses_an_unknown_override_in_one_line(tmp_path):
     out = tmp_path / "settings.json"
     run = airsim_cli("settings", f"out={out}", "scenario.bogus=3")
