@@ -12,23 +12,19 @@ from rlplat.experiment.command_line import hydra_main
 
 
 def check(cfg: DictConfig) -> None:
-    from rlplat.experiment.schema import validate_evaluate_config
-
-    validate_evaluate_config(cfg)
-
-
-def check_job(cfg: DictConfig, job_dir, field: str) -> None:
-    """The run (and its checkpoint) each job flies exists: before Hydra makes a sweep's
-    folder in it (``<run_dir>/eval``), or the first job of a sweep starts."""
+    """Each job's config, then the run (and its checkpoint) it flies: before Hydra makes a
+    sweep's folder in that run (``<run_dir>/eval``), or the first job starts."""
     from rlplat.agents.export import ARTIFACTS
     from rlplat.experiment.evaluation import checkpoint_path, load_run_config
+    from rlplat.experiment.schema import validate_evaluate_config
 
+    validate_evaluate_config(cfg)  # the fields first, then what they name
     load_run_config(cfg.run_dir)
     if cfg.policy == "checkpoint" or cfg.policy in ARTIFACTS:
         checkpoint_path(Path(cfg.run_dir), cfg.ckpt)
 
 
-@hydra_main("evaluate", check, validate_job=check_job)
+@hydra_main("evaluate", check)
 def main(cfg: DictConfig) -> None:
     from rlplat.experiment.evaluation import evaluate_from_config
 

@@ -13,17 +13,13 @@ from rlplat.experiment.command_line import hydra_main
 
 
 def check(cfg: DictConfig) -> None:
-    from rlplat.experiment.schema import validate_export_config
-
-    validate_export_config(cfg)
-
-
-def check_job(cfg: DictConfig, job_dir, field: str) -> None:
     """The run and checkpoint (or the controller file) each job exports exists, before the
     first job of a sweep starts (Hydra writes the sweep's record first)."""
     from rlplat.errors import ConfigError
     from rlplat.experiment.evaluation import checkpoint_path, load_run_config
+    from rlplat.experiment.schema import validate_export_config
 
+    validate_export_config(cfg)  # the fields first, then what they name
     if cfg.run_dir is not None:
         load_run_config(cfg.run_dir)
         checkpoint_path(Path(cfg.run_dir), cfg.ckpt)
@@ -31,7 +27,7 @@ def check_job(cfg: DictConfig, job_dir, field: str) -> None:
         raise ConfigError(f"controller: no file at {cfg.controller}")
 
 
-@hydra_main("export", check, validate_job=check_job)
+@hydra_main("export", check)
 def main(cfg: DictConfig) -> None:
     from rlplat.experiment.export import export_from_config
 

@@ -269,10 +269,12 @@ def test_the_controller_command_refuses_a_bad_out_and_writes_nothing_half(
         # checkpoint, nor any other file that happens to end in .pt
         (run / "checkpoints" / "best.pt", "error: out: "),
         (run / "config.pt", "error: out: "),
+        (run / "summary.pt", f"error: out: {run / 'summary.json'} (its card) exists and is no "),
     ):
         if out.name == "config.pt":
             out.write_text("seed: 0\n")
         before = out.read_bytes() if out.is_file() else None
+        summary = (run / "summary.json").read_bytes()
         with pytest.raises(SystemExit):
             main([str(run), str(out)])
         err = capsys.readouterr().err
@@ -280,6 +282,7 @@ def test_the_controller_command_refuses_a_bad_out_and_writes_nothing_half(
         if before is not None:
             assert "exists and is no controller file; not replacing it" in err
             assert out.read_bytes() == before
+        assert (run / "summary.json").read_bytes() == summary and not (run / "summary.pt").exists()
     # A card that cannot be made (the run's scenario set gone) leaves no controller file.
     out = tmp_path / "x.pt"
 

@@ -192,6 +192,10 @@ def test_a_fine_grid_counts_every_value_up_to_its_high_end(make_spec):
     missing = [m for m in report["missing"] if m.startswith("val: defender_max_speed")]
     low, high = (float(x) for x in re.findall(r"\[(.*), (.*)\]", missing[0])[0])
     assert len(missing) == 1 and low < 79.667497 == high, missing
+    # Bins finer than the grid read apart too, and no edge reads -0.
+    from rlplat.scenarios.quality import _edge
+
+    assert [_edge(x, 0.01) for x in (1.0, 1.01, -1e-12)] == ["1", "1.01", "0"]
 
 
 def test_quality_report_is_complete_when_every_grid_value_occurs(make_spec):

@@ -607,10 +607,14 @@ def test_a_resume_keeps_the_record_of_how_the_run_was_launched(
     resumed = OmegaConf.load(run / ".hydra" / "resume" / "overrides.yaml")
     assert "resume=true" in resumed and "train.total_frames=512" in resumed
     assert json.loads((run / "summary.json").read_text())["frames"] >= 512
-    # Hydra's --cfg shows a resume's config too (the record's override went after the flag)
-    shown = train_cli(*args, "resume=true", "train.total_frames=1024", "--cfg", "job")
-    assert shown.returncode == 0, shown.stderr[-2000:]
-    assert OmegaConf.create(shown.stdout).train.total_frames == 1024
+    # Hydra's --cfg shows a resume's config too, the flag after the overrides or before them
+    # (the record's override goes among the overrides, not after the flag)
+    for flag_first in (False, True):
+        command = [*args, "resume=true", "train.total_frames=1024"]
+        command = ["--cfg", "job", *command] if flag_first else [*command, "--cfg", "job"]
+        shown = train_cli(*command)
+        assert shown.returncode == 0, shown.stderr[-2000:]
+        assert OmegaConf.create(shown.stdout).train.total_frames == 1024
 
 
 @pytest.mark.skipif(shutil.which("sbatch") is not None, reason="this machine has SLURM")

@@ -36,8 +36,8 @@ class EpisodeResults:
             defender reached.
         defender_caught: (E, m) bool, which defenders were caught by the episode's end.
         attacker_separation: (E,) float32 m, least distance between two attackers in play (not
-            on the ground) at the start or at the end of a step: how near team-mates came to
-            each other, which the simulator does not stop; NaN where one attacker flies.
+            down) at the start or at the end of a step: how near team-mates came to each
+            other, which the embedded simulator does not stop; NaN where one attacker flies.
         positions: (E, T + 1, D, 3) float32 m, every drone (attackers, then defenders) at the start
             and after every step, T the longest episode; an episode that ended earlier repeats
             its final positions. None unless ``evaluate(..., record=True)``.
@@ -165,7 +165,7 @@ def _fly(env: PursuitEnv, policy, deterministic: bool, record: bool) -> dict:
     length = torch.zeros(n, dtype=torch.int64, device=env.device)
     terms = {k: torch.zeros(n, device=env.device) for k in env.reward_fn.weights}
     min_distance = td["distance"].squeeze(-1).clone()
-    separation = _separation(td["positions"][:, :attackers], env.ground_altitude)
+    separation = _separation(td, attackers, env.ground_altitude)
     visible_steps = torch.zeros(n, device=env.device)
     positions = [td["positions"]] if record else None
     waypoint = td["waypoint"].clone()  # (n, m)
@@ -181,7 +181,7 @@ def _fly(env: PursuitEnv, policy, deterministic: bool, record: bool) -> dict:
             length += alive.long()
             d = nxt["distance"].squeeze(-1)
             min_distance = torch.where(alive, min_distance.minimum(d), min_distance)
-            step_separation = _separation(nxt["positions"][:, :attackers], env.ground_altitude)
+            step_separation = _separation(nxt, attackers, env.ground_altitude)
             separation = torch.where(alive, separation.fmin(step_separation), separation)
             waypoint = torch.where(alive.unsqueeze(-1), nxt["waypoint"], waypoint)
             caught = torch.where(alive.unsqueeze(-1), nxt["caught"], caught)
@@ -216,14 +216,17 @@ def _fly(env: PursuitEnv, policy, deterministic: bool, record: bool) -> dict:
     return {k: v if k == "terms" else v.cpu() for k, v in out.items()}
 
 
-def _separation(attackers: torch.Tensor, ground: float) -> torch.Tensor:
-    """(n,) least distance between two of ``attackers`` (n, k, 3) above ``ground`` (a downed
-    one holds on the ground, out of play); NaN with fewer than two in play."""
-    n, k = attackers.shape[:2]
+def _separation(td: TensorDictBase, k: int, ground: float) -> torch.Tensor:
+    """(n,) least distance between two of the ``k`` attackers in play in ``td``: not down (the
+    env's ``("attacker", "down")`` where it has one, else above ``ground``); NaN with fewer
+    than two in play."""
+    attackers = td["positions"][:, :k]  # (n, k, 3)
+    n = attackers.shape[0]
     if k < 2:
         return torch.full((n,), float("nan"), device=attackers.device)
     d = (attackers.unsqueeze(2) - attackers.unsqueeze(1)).norm(dim=-1)  # (n, k, k)
-    up = attackers[..., 2] > ground
+    down = td.get(("attacker", "down"), None)
+    up = attackers[..., 2] > ground if down is None else ~down.squeeze(-1)
     pair = up.unsqueeze(-1) & up.unsqueeze(-2) & ~torch.eye(k, dtype=torch.bool, device=d.device)
     least = d.masked_fill(~pair, float("inf")).flatten(1).amin(-1)
     return least.masked_fill(least.isinf(), float("nan"))

@@ -70,13 +70,21 @@ def hydra_main(
             if resume_subdir is not None and _resumes(sys.argv[1:]):
                 # The run's .hydra/ stays as it was launched (what aggregate names a variant
                 # by); the resume's own goes beside it.
-                # First: after a flag (`--cfg job`) it would be read as the flag's value.
-                sys.argv.insert(1, f"hydra.output_subdir={resume_subdir}")
+                # Beside the other overrides: Hydra reads them as one run of arguments, and
+                # right after a flag (`--cfg job`) it would be read as the flag's value.
+                at = next(i for i, a in enumerate(sys.argv[1:], 1) if _is_override(a))
+                sys.argv.insert(at, f"hydra.output_subdir={resume_subdir}")
             return run()
 
         return entry
 
     return decorate
+
+
+def _is_override(arg: str) -> bool:
+    """Whether a command-line argument is an override (``key=value``), not a flag or a flag's
+    value."""
+    return not arg.startswith("-") and "=" in arg
 
 
 def _resumes(argv: Sequence[str]) -> bool:
@@ -152,7 +160,8 @@ def check_command_line(
         for o in parsed
     )
     interval = next((o for o in parsed if o.value_type == ValueType.INTERVAL_SWEEP), None)
-    if multirun and interval is not None:  # Hydra's own refusal is a traceback
+    sweeper = any(o.key_or_group == "hydra/sweeper" for o in parsed)  # one that may sample
+    if multirun and interval is not None and not sweeper:  # the basic one's refusal: a traceback
         raise ConfigError(
             f"{interval.input_line}: an interval is sampled by an optimising sweeper; the basic "
             "sweeper here runs lists, range(...) and glob(...) of a config group"
@@ -272,9 +281,11 @@ def _swept_values(o: Any) -> list[str]:
 
 
 def _group_options(group: str) -> list[str] | None:
-    """The options of a config group of conf/ (its files' names), None for another group."""
-    folder = CONF_DIR / group.lstrip("+")
-    if not folder.is_dir():
+    """The options of a config group of conf/ (its files' names), None for another group
+    (Hydra's own, whose plugins add options: ``hydra/launcher``)."""
+    group = group.lstrip("+")
+    folder = CONF_DIR / group
+    if group.split("/")[0] == "hydra" or not folder.is_dir():
         return None
     return sorted(p.stem for p in folder.glob("*.yaml"))
 

@@ -112,8 +112,21 @@ def check_out(out: str | Path) -> Path:
         raise ConfigError(f"out: a controller file ends in .pt (its card: <out>.json), got {out}")
     if out.exists() and not _is_controller(out):  # a run's checkpoint, or any other file
         raise ConfigError(f"out: {out} exists and is no controller file; not replacing it")
+    card = out.with_suffix(".json")
+    if card.exists() and not _is_card(card, out):  # a run's summary.json, or any other file
+        raise ConfigError(f"out: {card} (its card) exists and is no card of {out.name}; not "
+                          "replacing it")  # fmt: skip
     check_writable_dir(out.parent, "out")
     return out
+
+
+def _is_card(path: Path, out: Path) -> bool:
+    """Whether ``path`` holds the card of the controller file ``out`` (:func:`make_card`)."""
+    try:
+        card = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(card, dict) and card.get("controller") == out.name
 
 
 def _is_controller(path: Path) -> bool:

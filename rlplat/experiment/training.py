@@ -366,11 +366,13 @@ def preflight(cfg: DictConfig, run_dir: Path | None, field: str = "hydra.run.dir
     start = checked_start(cfg, run_dir, field)
     cfg = start.cfg
     if cfg.dynamics.name == "airsim":
-        # Building its env connects to the simulators, which train() does; here only whether
-        # each answers, so that a simulator not started leaves no run directory behind.
-        from rlplat.envs.airsim.client import check_simulators
+        # Building its env connects to the simulators, which train() does; here, for a run
+        # launched here, only whether each answers, so that a simulator not started leaves no
+        # run directory behind (a sweep's jobs may run where their simulators are: a cluster).
+        if field == "hydra.run.dir":
+            from rlplat.envs.airsim.client import check_simulators
 
-        check_simulators(cfg.dynamics)
+            check_simulators(cfg.dynamics)
         return
     env = build_env(cfg, scenarios=start.scenarios, split="train", num_envs=1)
     net = net_spec(env.obs_fn.scale, env.drone_action_spec.shape[-1], cfg.algo)

@@ -73,16 +73,18 @@ def _completeness(spec: ScenarioSpec, splits: dict[str, SplitColumns]) -> dict[s
             values = np.round(p.low + np.arange(p.levels) * p.resolution, 6)
             grid, _ = np.histogram(values, bins=edges)
             for b in np.flatnonzero((counts == 0) & (grid > 0)):
-                low, high = (_edge(x, p.resolution) for x in edges[b : b + 2])
+                step = min(p.resolution, edges[1] - edges[0])
+                low, high = (_edge(x, step) for x in edges[b : b + 2])
                 missing.append(f"{split}: {name} bin [{low}, {high}]")
     return {"complete": not missing, "bins": spec.quality_bins, "missing": missing}
 
 
-def _edge(x: float, resolution: float) -> str:
-    """A bin edge with one decimal more than the grid's step, so that a fine grid's edges
-    read apart ([79.6674736, 79.6674762], not [79.67, 79.67])."""
-    decimals = min(7, max(0, -math.floor(math.log10(resolution))) + 1)
-    return f"{x:.{decimals}f}".rstrip("0").rstrip(".")
+def _edge(x: float, step: float) -> str:
+    """A bin edge with one decimal more than ``step`` (the finer of the grid's and the bins'),
+    so that a fine grid's edges read apart ([79.6674736, 79.6674762], not [79.67, 79.67])."""
+    decimals = min(9, max(0, -math.floor(math.log10(step))) + 1)
+    text = f"{x:.{decimals}f}".rstrip("0").rstrip(".") if decimals else f"{x:.0f}"
+    return "0" if text == "-0" else text
 
 
 def _ks(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
