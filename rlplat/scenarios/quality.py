@@ -83,7 +83,7 @@ def _edge(x: float, step: float) -> str:
     """A bin edge with one decimal more than ``step`` (the finer of the grid's and the bins'),
     so that a fine grid's edges read apart ([79.6674736, 79.6674762], not [79.67, 79.67])."""
     decimals = min(9, max(0, -math.floor(math.log10(step))) + 1)
-    text = f"{x:.{decimals}f}".rstrip("0").rstrip(".") if decimals else f"{x:.0f}"
+    text = f"{x:.{decimals}f}".rstrip("0").rstrip(".")  # decimals >= 1: "100.0" keeps "100"
     return "0" if text == "-0" else text
 
 

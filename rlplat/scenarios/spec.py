@@ -398,7 +398,7 @@ def _param(raw: Any, where: str) -> ParamSpec:
     # Counted in millionths, exactly: high - low in floats is rounded (5.0 - 4.9 < 0.1).
     if not 0 < micro(res) <= micro(high) - micro(low):
         raise ConfigError(f"{where}.resolution: must be in (0, high - low], got {res}")
-    if (micro(high) - micro(low)) // micro(res) + 1 > MAX_LEVELS:
+    if ParamSpec(low=low, high=high, resolution=res).levels > MAX_LEVELS:
         raise too_fine
     dist = raw.get("dist", "uniform")
     if dist not in DISTRIBUTIONS:
