@@ -174,6 +174,7 @@ BAD_TRAIN = [
     (["env.compile_step=maybe"], "env.compile_step", "'maybe'"),
     (["env.attackers=0"], "env.attackers", "0"),
     (["env.attackers=2"], "env.attackers", "2"),  # the configured scenarios have 1
+    (["env.attackers=5"], "env.attackers", "5"),  # before the buffer it would outgrow
     (["env.time_limit=0.05"], "env.time_limit", "shorter than one control period"),
     (["scenario.n_test=0"], "scenario.n_test", "got 0"),  # training tests at its end
     (["scenario.n_val=0"], "scenario.n_val", "got 0"),
@@ -591,3 +592,18 @@ def test_every_job_of_a_sweep_is_checked():
     # A glob over one of conf/'s groups: each of its options, as the sweeper expands it.
     check_command_line("train", ["-m", "drone=glob(attacker_v1*)"], seen.append)
     assert sorted(c.drone.name for c in seen) == [f"attacker_v1{x}" for x in ("", 0, 1, 2, 3)]
+
+
+def test_the_help_of_evaluate_and_export_lists_only_the_groups_they_take(run_python):
+    options = ", ".join(p.stem for p in sorted((CONF_DIR / "dynamics").glob("*.yaml")))
+    shown = run_python("evaluate.py", "--help", timeout=120)
+    assert shown.returncode == 0, shown.stderr
+    groups = shown.stdout.split("== Configuration groups ==")[1].split("== Config ==")[0]
+    assert groups.split() == [
+        "dynamics:",
+        *f"{options} (fly on it instead of the run's own)".split(),
+    ]
+    assert "run_dir: ???" in shown.stdout
+    shown = run_python("export.py", "--help", timeout=120)
+    assert shown.returncode == 0, shown.stderr
+    assert "== Configuration groups ==" not in shown.stdout and "controller: null" in shown.stdout

@@ -5,6 +5,8 @@ import logging
 import math
 import re
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +24,7 @@ from rlplat.eval.metrics import wilson_interval
 from rlplat.eval.tables import episode_rows, summarize
 from rlplat.experiment.config import compose_config
 from rlplat.experiment.evaluation import evaluate_from_config, evaluate_run
+from rlplat.experiment.export import export_run
 from rlplat.experiment.factory import build_env
 from rlplat.scenarios import ScenarioSet
 
@@ -404,6 +407,21 @@ def test_an_ensemble_refuses_a_member_of_another_interface(trained_run, tmp_path
         evaluate_run(trained_run, ckpt=path, ensemble=[other])
     with pytest.raises(ConfigError, match=r"ensemble: no run directory at .*nowhere$"):
         evaluate_run(trained_run, ensemble=[tmp_path / "nowhere"])
+    # Each run flies once: the run itself, or a run named twice, would weigh double.
+    with pytest.raises(ConfigError, match=r"^ensemble: .* is run_dir itself; each run flies once$"):
+        evaluate_run(trained_run, ensemble=[trained_run / "."])
+    with pytest.raises(ConfigError, match=r"^ensemble: .*other is named twice; each run flies"):
+        evaluate_run(trained_run, ensemble=[other, tmp_path / "." / "other"])
+
+
+def test_a_file_that_is_no_checkpoint_is_blamed_on_the_setting_that_named_it(trained_run, tmp_path):
+    text = tmp_path / "README.md"
+    text.write_text("# not a checkpoint\n")
+    with pytest.raises(ConfigError, match=r"^ckpt: .*README.md is not an rlplat checkpoint"):
+        evaluate_run(trained_run, ckpt=str(text), split="val", plots=False)
+    with pytest.raises(ConfigError, match=r"^ckpt: .*README.md is not an rlplat checkpoint"):
+        export_run(trained_run, ckpt=str(text), out_dir=tmp_path / "out")
+    assert not (tmp_path / "out").exists()
 
 
 # Bad input -------------------------------------------------------------------------------
@@ -543,6 +561,25 @@ def test_a_sweep_over_a_missing_run_or_checkpoint_is_refused_before_hydra_writes
         err = refused_in_process("export.py", "-m", *args, cwd=tmp_path)
         assert err.startswith(("error: run_dir: no run directory", "error: controller: no file"))
         assert list(tmp_path.iterdir()) == []  # no multirun/ folder in the working directory
+
+
+def test_a_sweep_over_runs_evaluates_each_in_its_own_folder(trained_run, tmp_path):
+    # The sweep's record goes where one run's sweeps keep it (<run_dir>/eval) only when the
+    # sweep has one run; over runs, run_dir is unset in the sweep's own config (Hydra's
+    # multirun/<date>/<time> in the working directory), each job flying its own run.
+    copy = tmp_path / "copy"
+    shutil.copytree(trained_run, copy, ignore=shutil.ignore_patterns("eval"))
+    res = subprocess.run(
+        [sys.executable, str(ROOT / "evaluate.py"), "-m", f"run_dir={trained_run},{copy}",
+         "policy=pure_pursuit", "split=val", "plots=false", "trajectories=0"],
+        capture_output=True, text=True, cwd=tmp_path, timeout=300,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-2000:]
+    flown = [json.loads((run / "eval" / "val-pure_pursuit" / "summary.json").read_text())
+             for run in (trained_run, copy)]  # fmt: skip
+    assert flown[0]["captured"] == flown[1]["captured"]
+    records = [p.relative_to(tmp_path).parts for p in tmp_path.rglob("multirun.yaml")]
+    assert len(records) == 1 and records[0][0] == "multirun", records
 
 
 def test_cli_bad_input_is_one_line(tmp_path, run_python):

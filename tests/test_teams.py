@@ -433,10 +433,10 @@ def test_a_learned_two_vs_one_policy_beats_a_random_one(easy_pursuit, tmp_path, 
             "env.time_limit=20",
             "train.max_minutes=null",  # frames only: the same budget on a slower machine
             # After 4,096 frames of learning it captured about half of the split on a 2-core CPU
-            # (0.48 with one thread, 0.69 with two), at 16,384 frames 0.97; the bar is a random
-            # policy's rate + 0.2.
-            "train.total_frames=16384",
-            "train.eval_every_frames=8192",
+            # (0.48 with one thread, 0.69 with two), at 12,288 frames 0.92 (16,384: 0.97); the
+            # bar is a random policy's rate (0.02) + 0.2.
+            "train.total_frames=12288",
+            "train.eval_every_frames=4096",
             "train.progress=false",
             "algo.init_policy=random",  # nothing scripted: what it catches, it learned
             "algo.init_random_frames=4096",

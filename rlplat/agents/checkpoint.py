@@ -45,22 +45,23 @@ def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
     atomic_write_bytes(path, buffer.getvalue())
 
 
-def load_checkpoint(path: str | Path) -> dict[str, Any]:
-    """Read a checkpoint written by :func:`save_checkpoint`; a clear error if it is not one."""
+def load_checkpoint(path: str | Path, field: str = "checkpoint") -> dict[str, Any]:
+    """Read a checkpoint written by :func:`save_checkpoint`; a clear error if it is not one,
+    naming ``field``, the setting that gave the path."""
     path = Path(path)
     if not path.is_file():
-        raise ConfigError(f"checkpoint: no file at {path}")
+        raise ConfigError(f"{field}: no file at {path}")
     try:
         state = torch.load(path, map_location="cpu", weights_only=False)
     except OSError as e:
-        raise ConfigError(f"checkpoint: {path} cannot be read ({e.strerror or e})") from None
+        raise ConfigError(f"{field}: {path} cannot be read ({e.strerror or e})") from None
     except Exception as e:  # noqa: BLE001 - whatever the file is, it is not a checkpoint
         why = " ".join(str(e).split())[:120]
         raise ConfigError(
-            f"checkpoint: {path} is not an rlplat checkpoint ({type(e).__name__}: {why})"
+            f"{field}: {path} is not an rlplat checkpoint ({type(e).__name__}: {why})"
         ) from None
     if not isinstance(state, dict) or state.get("format_version") != FORMAT_VERSION:
-        raise ConfigError(f"checkpoint: {path} is not an rlplat checkpoint (format 1)")
+        raise ConfigError(f"{field}: {path} is not an rlplat checkpoint (format 1)")
     return state
 
 

@@ -2,14 +2,29 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+
+
+def sweep_dir(run_dir: str | None, folder: str) -> str:
+    """``hydra.sweep.dir`` of ``evaluate.py`` and ``export.py`` (``${rlplat.sweep_dir:...}``):
+    ``<run_dir>/<folder>`` for a sweep of one run; for a sweep over runs (``run_dir`` swept,
+    so unset in the sweep's own config) or over controller files, Hydra's own
+    ``multirun/<date>/<time>``. Either way each job writes in its own run's folder."""
+    if run_dir is None:
+        return time.strftime("multirun/%Y-%m-%d/%H-%M-%S")
+    return str(Path(run_dir) / folder)
+
+
+if not OmegaConf.has_resolver("rlplat.sweep_dir"):
+    OmegaConf.register_new_resolver("rlplat.sweep_dir", sweep_dir)
 
 
 def compose_config(

@@ -362,7 +362,7 @@ def evaluate_run(
         compiler = find_compiler(compiler)
     if files is not None:
         name = f"{name}-{policy}"
-    members = ensemble_members(cfg, policy, ckpt, ensemble)
+    members = ensemble_members(cfg, policy, ckpt, ensemble, run_dir)
     if members:
         name = f"{name}-ensemble{len(members) + 1}"
     if out_dir is None:
@@ -376,7 +376,7 @@ def evaluate_run(
     out_dir = check_writable_dir(out_dir, "out_dir")
     summary_path = run_dir / "summary.json"
     run_summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
-    state = load_checkpoint(path) if path else None
+    state = load_checkpoint(path, "ckpt") if path else None
 
     # Rebuild the run's env on its scenario set (or the one asked for).
     scenarios = resolve_scenarios(cfg, scenarios_dir or cfg.get("scenarios_dir"))
@@ -409,7 +409,7 @@ def evaluate_run(
             if members:
                 actors = [actor]
                 for member_path, member_cfg in members:
-                    member = load_checkpoint(member_path)
+                    member = load_checkpoint(member_path, "ensemble")
                     check_policy_fits(member, member_cfg, env, member_path, lone_in_team,
                                       field="ensemble")  # fmt: skip
                     actors.append(
@@ -490,18 +490,23 @@ def evaluate_run(
 
 
 def ensemble_members(
-    cfg: DictConfig, policy: str, ckpt: str, runs: Sequence[str | Path]
+    cfg: DictConfig, policy: str, ckpt: str, runs: Sequence[str | Path], run_dir: Path
 ) -> list[tuple[Path, DictConfig]]:
     """The checkpoint and config of each further run of an ensemble, checked against the run
-    of ``cfg``: the same learner, observation and action (what an action means)."""
+    of ``cfg`` (at ``run_dir``): the same learner, observation and action (what an action
+    means), each run once and none of them ``run_dir`` (a run counted twice weighs double)."""
     if runs and policy != "checkpoint":
         raise ConfigError(f"ensemble: flies checkpoints (policy=checkpoint), got policy={policy}")
     if runs and ckpt not in CHECKPOINT_NAMES:
         raise ConfigError(
             f"ensemble: needs ckpt={' or '.join(CHECKPOINT_NAMES)} (each run's own), got {ckpt}"
         )
-    members = []
+    members, seen = [], {Path(run_dir).resolve(): "is run_dir itself"}
     for run in runs:
+        where = Path(run).resolve()
+        if where in seen:
+            raise ConfigError(f"ensemble: {run} {seen[where]}; each run flies once")
+        seen[where] = "is named twice"
         try:
             member_cfg = load_run_config(run)
         except ConfigError as err:

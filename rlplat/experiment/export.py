@@ -104,10 +104,10 @@ class Source:
     described: dict[str, Any]
 
 
-def _load(path: Path) -> tuple[dict[str, Any], str]:
-    state = load_checkpoint(path)
+def _load(path: Path, field: str) -> tuple[dict[str, Any], str]:
+    state = load_checkpoint(path, field)
     if "actor" not in state or "net" not in state:
-        raise ConfigError(f"ckpt: {path} holds no actor network")
+        raise ConfigError(f"{field}: {path} holds no actor network")
     return state, sha256_bytes(path.read_bytes())
 
 
@@ -115,7 +115,7 @@ def run_source(run_dir: Path, ckpt: str, out_dir, scenarios_dir) -> Source:
     """A run's checkpoint ``ckpt`` (``best``, ``last`` or a path)."""
     cfg = load_run_config(run_dir)
     path = checkpoint_path(run_dir, ckpt)
-    state, sha = _load(path)
+    state, sha = _load(path, "ckpt")
     summary_path = run_dir / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
     digest = summary.get("scenario_digest") or state.get("scenario_digest")
@@ -130,7 +130,7 @@ def controller_source(controller: Path, out_dir, scenarios_dir) -> Source:
     rolled out in the env of its drone bundle with the observation it was trained on."""
     if not controller.is_file():
         raise ConfigError(f"controller: no file at {controller}")
-    state, sha = _load(controller)
+    state, sha = _load(controller, "controller")
     config = state.get("config", {})
     drone = config.get("drone", {}).get("name")
     try:

@@ -444,9 +444,6 @@ def _check_env_fields(c: Mapping[str, Any], env_batch: int | None = None) -> Non
             f"env.time_limit: {env['time_limit']} s is shorter than one control period "
             f"(env.control_period={env['control_period']} s)"
         )
-    k, scenario_k = env["attackers"], c["scenario"].get("attackers", 1)
-    if k is not None and c["scenarios_dir"] is None and k > scenario_k:
-        raise ConfigError(f"env.attackers: {k}, the scenarios have {scenario_k} (at most)")
     dynamics = _component(c, "dynamics")
     if c["dynamics"]["name"] == "airsim":
         if env_batch is None:
@@ -541,6 +538,9 @@ def validate_train_config(cfg: DictConfig, env_batch: int | None = None) -> None
     logger = LOGGER_RULES.get(backend, {}) if isinstance(backend, str) else {}
     rules = {**TRAIN_RULES, **_component_rules(c), **logger}
     check_table(c, rules)
+    k, scenario_k = c["env"]["attackers"], c["scenario"].get("attackers", 1)
+    if k is not None and c["scenarios_dir"] is None and k > scenario_k:  # what training sizes
+        raise ConfigError(f"env.attackers: {k}, the scenarios have {scenario_k} (at most)")
     if env_batch is None:
         _check_training(c)
     _check_env_fields(c, env_batch)

@@ -213,7 +213,7 @@ def sim2sim(
     name = checkpoint_label(run_dir, ckpt, path)
     out_dir = Path(out_dir) if out_dir else run_dir / "eval" / f"sim2sim-{split}-{name}"
     check_writable_dir(out_dir, "out_dir")
-    state = load_checkpoint(path)
+    state = load_checkpoint(path, "ckpt")
     scenarios = resolve_scenarios(cfg, scenarios_dir or cfg.get("scenarios_dir"))
     check_simulators(airsim)  # before the embedded leg's minutes: a simulator not started
 
