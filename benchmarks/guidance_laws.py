@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import math
 import subprocess
 
 import torch
@@ -51,7 +52,8 @@ SPLITS = ("val", "test")
 class Offset(ProportionalNavigation):
     """Proportional navigation at a point ``offset`` m beside each attacker's nearest defender
     (horizontally, square to the line of sight, on the side the defender flies towards); the
-    law itself within ``within`` m of the defender."""
+    law itself within ``within`` m of the defender. Where the defender hovers or flies along the
+    line of sight, the side is the attacker's left (counter-clockwise seen from above)."""
 
     def __init__(self, *, offset: float, within: float, **law) -> None:
         super().__init__(**law)
@@ -106,8 +108,8 @@ def offset_arg(text: str) -> tuple[float, float]:
         offset, within = (float(x) for x in text.split(":"))
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r}: give R:D, e.g. 10:12") from None
-    if not (offset > 0 and within >= 0):
-        raise argparse.ArgumentTypeError(f"{text!r}: R > 0 and D >= 0 metres")
+    if not (0 < offset < math.inf and 0 < within < math.inf):
+        raise argparse.ArgumentTypeError(f"{text!r}: R and D finite metres > 0")
     return offset, within
 
 

@@ -408,10 +408,12 @@ def test_an_ensemble_refuses_a_member_of_another_interface(trained_run, tmp_path
     with pytest.raises(ConfigError, match=r"ensemble: no run directory at .*nowhere$"):
         evaluate_run(trained_run, ensemble=[tmp_path / "nowhere"])
     # Each run flies once: the run itself, or a run named twice, would weigh double.
+    itself = f"{trained_run}/../{trained_run.name}"  # the same folder, spelled otherwise
     with pytest.raises(ConfigError, match=r"^ensemble: .* is run_dir itself; each run flies once$"):
-        evaluate_run(trained_run, ensemble=[trained_run / "."])
+        evaluate_run(trained_run, ensemble=[itself])
+    twice = f"{tmp_path}/./../{tmp_path.name}/other"
     with pytest.raises(ConfigError, match=r"^ensemble: .*other is named twice; each run flies"):
-        evaluate_run(trained_run, ensemble=[other, tmp_path / "." / "other"])
+        evaluate_run(trained_run, ensemble=[other, twice])
 
 
 def test_a_file_that_is_no_checkpoint_is_blamed_on_the_setting_that_named_it(trained_run, tmp_path):
@@ -580,6 +582,8 @@ def test_a_sweep_over_runs_evaluates_each_in_its_own_folder(trained_run, tmp_pat
     assert flown[0]["captured"] == flown[1]["captured"]
     records = [p.relative_to(tmp_path).parts for p in tmp_path.rglob("multirun.yaml")]
     assert len(records) == 1 and records[0][0] == "multirun", records
+    # One folder for the sweep, however long its jobs take (Hydra keeps its time).
+    assert [p for p in (tmp_path / "multirun").glob("*/*")] == [tmp_path.joinpath(*records[0][:3])]
 
 
 def test_cli_bad_input_is_one_line(tmp_path, run_python):

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -13,14 +12,13 @@ from omegaconf import DictConfig, OmegaConf
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
 
-def sweep_dir(run_dir: str | None, folder: str) -> str:
+def sweep_dir(run_dir: str | None, folder: str, otherwise: str) -> str:
     """``hydra.sweep.dir`` of ``evaluate.py`` and ``export.py`` (``${rlplat.sweep_dir:...}``):
     ``<run_dir>/<folder>`` for a sweep of one run; for a sweep over runs (``run_dir`` swept,
-    so unset in the sweep's own config) or over controller files, Hydra's own
-    ``multirun/<date>/<time>``. Either way each job writes in its own run's folder."""
-    if run_dir is None:
-        return time.strftime("multirun/%Y-%m-%d/%H-%M-%S")
-    return str(Path(run_dir) / folder)
+    so unset in the sweep's own config) or over controller files, ``otherwise``: Hydra's own
+    ``multirun/${now:...}``, whose time Hydra keeps for the whole sweep. Either way each job
+    writes in its own run's folder."""
+    return otherwise if run_dir is None else str(Path(run_dir) / folder)
 
 
 if not OmegaConf.has_resolver("rlplat.sweep_dir"):
