@@ -18,8 +18,8 @@ markdown table:
 
 - with ``--offsets R:D ...``, the default law flown off to one side (:class:`Offset`): aimed
   R m beside the defender, on the side it flies towards, until within D m, then the law itself.
-  A network defender flees the attacker it sees; coming from the side it flies towards is
-  what the searched plays of ``team_search.py`` look like (fast, aimed about 15 m beside it).
+  The searched plays of ``team_search.py`` that capture network defenders fly so (fast, at a
+  point a median 15 m from the defender horizontally); this is one law of that shape.
 
     .venv/bin/python benchmarks/guidance_laws.py [overrides ...] [--gains 1 2 5] \
         [--leads 0.5 0.75 1 1.5] [--horizons 4 8 16] [--accel-leads 0 0.9] [--offsets 10:12]

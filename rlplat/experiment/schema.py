@@ -539,7 +539,7 @@ def validate_train_config(cfg: DictConfig, env_batch: int | None = None) -> None
     rules = {**TRAIN_RULES, **_component_rules(c), **logger}
     check_table(c, rules)
     k, scenario_k = c["env"]["attackers"], c["scenario"].get("attackers", 1)
-    if k is not None and c["scenarios_dir"] is None and k > scenario_k:  # what training sizes
+    if k is not None and c["scenarios_dir"] is None and k > scenario_k:  # sizes the buffer check
         raise ConfigError(f"env.attackers: {k}, the scenarios have {scenario_k} (at most)")
     if env_batch is None:
         _check_training(c)
