@@ -18,6 +18,10 @@ whole split:
   navigation at the defender, no correction), farther the checkpoint over the law (a terminal
   phase; an ``action=route_law*`` run, on a set of one defender: the law's and the
   observation's distances are then to the same drone).
+- ``far-offset:R:D`` / ``near-offset:R:D``: the seat farther from (nearer to) the defender
+  flies, without a correction, proportional navigation aimed R m beside the defender (the
+  side it flies towards) until within D m (``benchmarks/guidance_laws.py --offsets``), the
+  other seats the checkpoint.
 
 Prints the capture rate of each variant, of the route flyers and of the network defenders.
 
@@ -58,6 +62,7 @@ class SeatVariant(TensorDictModuleBase):
         # near:D1:D2, read once (check_variant has checked it)
         self.gate = tuple(float(x) for x in variant.split(":")[1:]) if ":" in variant else None
         self.home = variant.startswith("home:")
+        self.offset = variant.split(":")[0] if "-offset:" in variant else None
         self.obs_key, self.action_key = obs_key, action_key
         self.in_keys, self.out_keys = [obs_key], [action_key]
 
@@ -74,6 +79,8 @@ class SeatVariant(TensorDictModuleBase):
             scale = nearest.to(distance.dtype)
         elif self.variant == "near-law":
             scale = (~nearest).to(distance.dtype)
+        elif self.offset is not None:  # the offset seat flies its law (seat_offset)
+            scale = (nearest if self.offset == "far-offset" else ~nearest).to(distance.dtype)
         elif self.home:  # home:R, the law's homing within R (seat_home)
             scale = (distance >= self.gate[0]).to(distance.dtype)
         else:  # near:D1:D2
@@ -117,10 +124,42 @@ def seat_home(action_fn, radius: float):
     return guidance
 
 
+def seat_offset(action_fn, seat: str, offset: float, within: float):
+    """The action's guidance (``action_fn.guidance``'s signature) that, in the ``seat`` (far
+    or near) farther from (nearer to) its defender, flies proportional navigation at a point
+    ``offset`` m beside it (horizontally, square to the line of sight, on the side it flies
+    towards) until within ``within`` m, and the action's own law in the others."""
+    law = type(action_fn)
+
+    def guidance(rel, v_other, max_speed, a_other=None, meeting=None):
+        flown = law.guidance(action_fn, rel, v_other, max_speed, a_other, meeting)
+        side = torch.stack([-rel[..., 1], rel[..., 0], torch.zeros_like(rel[..., 0])], -1)
+        side = side / side.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+        side = torch.where((side * v_other).sum(-1, keepdim=True) < 0, -side, side)
+        distance = rel.norm(dim=-1)  # (*B, seats)
+        aim = torch.where((distance >= within).unsqueeze(-1), rel + offset * side, rel)
+        beside = GuidedVelocityAction.guidance(action_fn, aim, v_other, max_speed)
+        nearest = distance <= distance.amin(-1, keepdim=True)
+        flies = ~nearest if seat == "far" else nearest
+        return torch.where(flies.unsqueeze(-1), beside, flown)
+
+    return guidance
+
+
 def check_variant(variant: str) -> str:
     if variant in ("policy", "law", "far-law", "near-law", *HEAD_OFF):
         return variant
     parts = variant.split(":")
+    if parts[0] in ("far-offset", "near-offset"):
+        try:
+            offset, within = (float(x) for x in parts[1:])
+        except ValueError:
+            offset = within = float("nan")
+        if not (0 < offset < float("inf") and 0 < within < float("inf")):
+            raise argparse.ArgumentTypeError(
+                f"variant: {parts[0]}:R:D with finite R, D > 0 m, got {variant!r}"
+            )
+        return variant
     if parts[0] == "home":
         try:
             radius = float(parts[1]) if len(parts) == 2 else float("nan")
@@ -135,7 +174,8 @@ def check_variant(variant: str) -> str:
         low = high = float("nan")
     if parts[0] != "near" or len(parts) != 3 or not 0 <= low < high:
         raise argparse.ArgumentTypeError(
-            f"variant: policy, law, far-law, near-law, {', '.join(HEAD_OFF)}, home:R or "
+            f"variant: policy, law, far-law, near-law, {', '.join(HEAD_OFF)}, home:R, "
+            "far-offset:R:D, near-offset:R:D or "
             f"near:D1:D2 with 0 <= D1 < D2, got {variant!r}"
         )
     return variant
@@ -192,6 +232,10 @@ def main() -> None:
         else:
             if variant.startswith("home:"):
                 env.action_fn.guidance = seat_home(env.action_fn, float(variant.split(":")[1]))
+            if "-offset:" in variant:
+                seat, offset, within = variant.split(":")
+                env.action_fn.guidance = seat_offset(env.action_fn, seat.split("-")[0],
+                                                     float(offset), float(within))  # fmt: skip
             module = SeatVariant(actor, variant, observation_key(env.group), env.action_key,
                                  slice(at, at + 3))  # fmt: skip
             results = evaluate(env, module)
