@@ -63,13 +63,19 @@ class Offset(ProportionalNavigation):
         own, speed, near = self._nearest(positions, max_speed, caught)
         rel = gather_drones(positions[:, self.others], near) - own
         v_other = gather_drones(velocities[:, self.others], near)
-        side = torch.stack([-rel[..., 1], rel[..., 0], torch.zeros_like(rel[..., 0])], -1)
-        side = side / side.norm(dim=-1, keepdim=True).clamp_min(1e-6)
-        side = torch.where((side * v_other).sum(-1, keepdim=True) < 0, -side, side)
-        far = rel.norm(dim=-1, keepdim=True) >= self.within
-        aim = torch.where(far, rel + self.offset * side, rel)
+        aim = aim_beside(rel, v_other, self.offset, self.within)
         action = intercept_action(aim, v_other, speed, self.gain, self.lead, self.max_lead_time)
         return self._action(action)
+
+
+def aim_beside(rel: torch.Tensor, v_other: torch.Tensor, offset: float, within: float):
+    """The defender's position relative to the attacker (``rel``, (..., 3)) moved ``offset`` m
+    beside it (:class:`Offset`), where it is ``within`` m or farther; ``rel`` nearer."""
+    side = torch.stack([-rel[..., 1], rel[..., 0], torch.zeros_like(rel[..., 0])], -1)
+    side = side / side.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+    side = torch.where((side * v_other).sum(-1, keepdim=True) < 0, -side, side)
+    far = rel.norm(dim=-1, keepdim=True) >= within
+    return torch.where(far, rel + offset * side, rel)
 
 
 def captures(

@@ -36,6 +36,7 @@ import logging
 from pathlib import Path
 
 import torch
+from guidance_laws import aim_beside  # a script beside this one (benchmarks/)
 from tensordict.nn import TensorDictModuleBase
 
 from rlplat.agents.checkpoint import actor_from_state, load_checkpoint
@@ -133,12 +134,9 @@ def seat_offset(action_fn, seat: str, offset: float, within: float):
 
     def guidance(rel, v_other, max_speed, a_other=None, meeting=None):
         flown = law.guidance(action_fn, rel, v_other, max_speed, a_other, meeting)
-        side = torch.stack([-rel[..., 1], rel[..., 0], torch.zeros_like(rel[..., 0])], -1)
-        side = side / side.norm(dim=-1, keepdim=True).clamp_min(1e-6)
-        side = torch.where((side * v_other).sum(-1, keepdim=True) < 0, -side, side)
-        distance = rel.norm(dim=-1)  # (*B, seats)
-        aim = torch.where((distance >= within).unsqueeze(-1), rel + offset * side, rel)
+        aim = aim_beside(rel, v_other, offset, within)
         beside = GuidedVelocityAction.guidance(action_fn, aim, v_other, max_speed)
+        distance = rel.norm(dim=-1)  # (*B, seats)
         nearest = distance <= distance.amin(-1, keepdim=True)
         flies = ~nearest if seat == "far" else nearest
         return torch.where(flies.unsqueeze(-1), beside, flown)

@@ -128,9 +128,7 @@ def run_source(run_dir: Path, ckpt: str, out_dir, scenarios_dir) -> Source:
 def controller_source(controller: Path, out_dir, scenarios_dir) -> Source:
     """A controller file (:mod:`rlplat.experiment.controller`, e.g. the shipped defender):
     rolled out in the env of its drone bundle with the observation it was trained on."""
-    if not controller.is_file():
-        raise ConfigError(f"controller: no file at {controller}")
-    state, sha = _load(controller, "controller")
+    state, sha = _load(controller, "controller")  # "controller: no file at ..." where none is
     config = state.get("config", {})
     drone = config.get("drone", {}).get("name")
     try:
