@@ -125,6 +125,7 @@ def test_export_writes_verified_artifacts_and_their_card(run, exported):
     obs = card["interface"]["observation"]
     assert obs["name"] == "relative_state" and obs["dim"] == len(obs["features"]) == 9
     assert obs["features"][0] == {"name": "v_own.x", "unit": "m/s", "scale": 5.0}
+    assert card["interface"]["frame"].startswith("world frame ENU (x east, y north, z up")
     assert [layer["type"] for layer in card["network"]["layers"]] == [
         "Linear", "ReLU", "Linear", "ReLU", "Linear",
     ]  # fmt: skip
@@ -150,6 +151,7 @@ def test_export_writes_verified_artifacts_and_their_card(run, exported):
         in header
     )
     assert "action: in [-1, 1]; times the drone's maximum speed per axis, the velocity" in header
+    assert f"Frame: {card['interface']['frame']}." in header  # a host in NED flips z
 
 
 def test_the_written_files_compute_the_torch_actions(run, exported, scenarios, tmp_path):
@@ -262,8 +264,12 @@ def test_a_second_export_keeps_the_card_of_the_same_artifacts_on_this_machine(
     export_run(run, out_dir=out)
     assert not timed
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    # The card's load is the one the timing ran beside: sampled after it, not before.
+    loads = itertools.chain([[0.0, 0.0, 0.0]], itertools.repeat([7.0, 7.0, 7.0]))
+    monkeypatch.setattr(export_module, "load_average", lambda: next(loads))
     card = export_run(run, out_dir=out, retime=True)
     assert len(timed) == 1
+    assert card["machine"]["load_average"] == [7.0, 7.0, 7.0]
     assert card["timing"]["c"]["calls"] == exported["timing"]["c"]["calls"]
     for name in ARTIFACTS:
         assert (out / name).read_bytes() == before[name], name

@@ -438,7 +438,7 @@ def c_sources(
         )
         + "#if !defined(__cplusplus) && \\\n"
         "    (!defined(__STDC_VERSION__) || __STDC_VERSION__ < 199901L)\n"
-        '#error "policy.c needs C99 or later (tanhf, expm1f): compile with -std=c99"\n'
+        '#error "policy.c needs C99 or later (tanhf, expm1f): -std=c99 (MSVC: /std:c11)"\n'
         "#endif\n\n"
         '#include <math.h>\n\n#include "policy.h"\n\n'
         + "\n".join(tables)

@@ -87,6 +87,8 @@ ONNX_BATCH = 1024
 #: Rollout observations the card lists with the torch actor's actions: reference pairs that
 #: check a build of ``policy.c`` (another compiler, flags, target) without Python.
 CARD_SAMPLES = 16
+#: The world frame of every vector the artifacts read and the velocity command they make.
+FRAME = "world frame ENU (x east, y north, z up; m, m/s, m/s^2), the command's too"
 
 
 @dataclass(frozen=True)
@@ -224,7 +226,11 @@ def describe_lines(src: Source, env, features: list[dict[str, Any]]) -> list[str
     lines = [f"Network: {who}; source checkpoint sha256:", f"  {src.sha256}"]
     if env.group is not None:
         lines.append(f"A team of {env.team_size} drones shares it: one call per drone and step.")
-    lines += ["", "obs[i]: feature, unit (the network multiplies it by float32(1 / scale)):"]
+    lines += [
+        "",
+        f"Frame: {FRAME}.",
+        "obs[i]: feature, unit (the network multiplies it by float32(1 / scale)):",
+    ]
     lines += [
         f"  [{i}] {f['name']}, {f['unit']} (scale {f['scale']:g})" for i, f in enumerate(features)
     ]
@@ -360,6 +366,7 @@ def interface_card(src: Source, env, actor: DeterministicActor, features) -> dic
         card = env.action_fn.card()
         action.update(card, features=card["features"][: actor.action_dim])
     interface = {
+        "frame": FRAME,
         "observation": {"name": src.cfg.observation.name, "dim": actor.obs_dim,
                         "features": features},
         "action": action,
@@ -383,12 +390,17 @@ def measure_timing(header, source, onnx_policy, obs: np.ndarray, calls: int, com
     }  # fmt: skip
 
 
-def machine_card(compiler: str) -> dict[str, Any]:
-    """Where the figures were measured."""
+def load_average() -> list[float] | None:
+    """The system's 1-, 5- and 15-minute load averages (None where the system has none)."""
     try:
-        load = [round(x, 2) for x in os.getloadavg()]
+        return [round(x, 2) for x in os.getloadavg()]
     except OSError:
-        load = None
+        return None
+
+
+def machine_card(compiler: str) -> dict[str, Any]:
+    """Where the figures were measured (``load_average``: now; the export samples it again
+    right after timing)."""
     return {
         "cpu": cpu_model(),
         "compiler": compiler_version(compiler),
@@ -397,7 +409,7 @@ def machine_card(compiler: str) -> dict[str, Any]:
         "torch": torch.__version__,
         "onnxruntime": version("onnxruntime"),
         "onnx": version("onnx"),
-        "load_average": load,
+        "load_average": load_average(),
     }
 
 
@@ -517,6 +529,7 @@ def export_run(
     kept = None if retime else earlier_timing(src.out_dir, files_card, machine, timing_calls)
     if kept is None:
         timing = measure_timing(header, source, onnx_policy, x, timing_calls, compiler)
+        machine["load_average"] = load_average()  # what ran beside the timing, not before it
     else:
         timing, machine = kept
         log.info("timing kept from %s (the same artifacts timed on this machine); "
