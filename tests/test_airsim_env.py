@@ -648,6 +648,23 @@ def test_a_simulator_that_stops_answering_fails_after_timeout_s_naming_the_call(
     message = str(info.value)
     assert f"simulator at {server.address} stopped answering" in message
     assert "simContinueForTime" in message and "dynamics.timeout_s" in message
+    # The moves of the step wait beside it: a server serving fewer calls at once hangs so too.
+    assert "2 moveByVelocity calls were still open" in message and "fewer than 3 calls" in message
+    env.close()
+
+
+def test_a_drone_read_away_from_its_placement_is_logged_once(server, scenarios, caplog):
+    env = airsim_env(scenarios, server.address)
+    with caplog.at_level("WARNING", logger="rlplat.envs.airsim.dynamics"):
+        env.reset()
+        assert "from where it was placed" not in caplog.text  # placed where it reads
+        # A simulator that applies a pose late (older AirSim) reads the drones where they were.
+        args, _ = server._methods["simSetVehiclePose"]
+        server._methods["simSetVehiclePose"] = (args, lambda *_: None)
+        env.reset()
+        env.reset()
+    assert caplog.text.count("from where it was placed") == 1
+    assert f"simulator at {server.address}: " in caplog.text
     env.close()
 
 

@@ -60,6 +60,9 @@ TIME_MISMATCH = ("error", "warn")
 STILL_S = 0.05
 #: The most times a short step is run on for its missing time (:meth:`AirSimDynamics.advance`).
 TOP_UPS = 3
+#: m, how far a drone may read from where it was placed (a simulator that applies a pose late
+#: reads the old one; logged once).
+PLACEMENT_TOLERANCE_M = 0.1
 
 
 class AirSimDynamics(DroneDynamics):
@@ -141,6 +144,7 @@ class AirSimDynamics(DroneDynamics):
         self.collided = torch.zeros(num_envs, num_drones, dtype=torch.bool, device=self.device)
         self.last_advance_s = float("nan")  # sim seconds the last step advanced
         self._ran_short = False  # a step has been run on for time it lacked (logged once)
+        self._misplaced = False  # a drone read away from its placement (logged once)
 
         # Connect, check the vehicles and the clock, read the spawn points; then pause.
         self.client = AirSimClient(
@@ -272,7 +276,16 @@ class AirSimDynamics(DroneDynamics):
         for i, name in enumerate(self.names):
             self.client.take_control(name)
             self.client.set_position(name, world_to_local(world_ned[i], self.spawn[name]).tolist())
+        placed = self.position.clone()
         self._timestamp_ns = self._read("the drones after placing them")
+        off = (self.position - placed).abs().amax(-1)[0]  # (drones,) m
+        if not self._misplaced and bool((off > PLACEMENT_TOLERANCE_M).any()):
+            far = int(off.argmax())
+            log.warning("simulator at %s: %s reads %.2f m from where it was placed (the "
+                        "simulator applies poses late, or spawn points differ from its "
+                        "settings); the episode starts where the drones read",
+                        self.client.address, self.names[far], float(off[far]))  # fmt: skip
+            self._misplaced = True
         self.collided = torch.zeros_like(self.collided)
 
     # Helpers ---------------------------------------------------------------------------
