@@ -105,6 +105,9 @@ def test_team_settings_read_names_spawn_and_clock_speed_from_the_config():
     assert settings["ClockSpeed"] == 2.0
     offsets = spawn_offsets(settings, ["Red", "Red2", "Blue"])
     assert offsets == {"Red": (0.0, 0.0, 0.0), "Red2": (1.0, 2.0, -3.0), "Blue": (0.0, 10.0, 0.0)}
+    # A list names every vehicle, attackers first.
+    listed = compose_train(["scenario=pursuit_2v1", "+dynamics.vehicles=[Drone1,Drone2,Drone3]"])
+    assert list(team_settings(listed)["Vehicles"]) == ["Drone1", "Drone2", "Drone3"]
     # Only the attackers the env flies.
     assert list(
         team_settings(compose_train(["scenario=pursuit_2v1", "env.attackers=1"]))["Vehicles"]

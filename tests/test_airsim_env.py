@@ -387,6 +387,31 @@ def test_two_attackers_fly_as_numbered_vehicles(tmp_path, write_small_set):
         env.close()
 
 
+def test_a_team_flies_vehicles_named_in_a_list(tmp_path, write_small_set):
+    team = write_small_set(tmp_path / "2v1", "scenario=pursuit_2v1")
+    names = ["Drone1", "Drone2", "Drone3"]  # attackers first, then the defender
+    spawn = {n: (5.0 * i, 0.0, 0.0) for i, n in enumerate(names)}
+    with TestServer(make_settings(names, spawn)) as srv:
+        env = airsim_env(team, srv.address, vehicles="[Drone1,Drone2,Drone3]")
+        td = env.reset()
+        sc = env.scenarios[int(td["scenario_index"])]
+        starts = torch.cat([sc["attacker_start"], sc["defender_start"]])
+        world = srv.snapshot()["vehicles"]
+        for i, name in enumerate(names):
+            assert world[name]["position"] == pytest.approx(
+                enu_to_ned(starts[i].tolist()), abs=1e-4
+            )
+        env.close()
+        # As many names as drones, checked before any call to the simulator.
+        srv.start_recording()
+        with pytest.raises(ConfigError, match=r"^dynamics.vehicles: must name the 2 attacker"):
+            airsim_env(team, srv.address, vehicles="[Drone1,Drone3]")
+        assert srv.take_recording() == []
+    # Not a list of distinct names: refused by the config's check.
+    with pytest.raises(ConfigError, match=r"^dynamics.vehicles: must be null or a list"):
+        airsim_env(team, "127.0.0.1:1", vehicles="[Drone1,Drone1,Drone2]")
+
+
 def test_the_gymnasium_adapter_flies_on_the_simulator(server, scenarios):
     env = make_gym_env(*airsim(server.address), scenarios=scenarios, split="test")
     obs, _ = env.reset(seed=0)

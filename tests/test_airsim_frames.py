@@ -160,6 +160,19 @@ def test_vehicle_names_refuse_bad_input(args, field):
         vehicle_names(*args)
 
 
+def test_vehicle_names_take_a_list_of_every_vehicle():
+    assert vehicle_names(2, 1, names=["Drone1", "Drone2", "Drone3"]) == [
+        "Drone1",
+        "Drone2",
+        "Drone3",
+    ]
+    for names in (["Drone1", "Drone2"], ["Drone1", "", "Drone3"], "Drone1"):
+        with pytest.raises(ConfigError, match=r"dynamics.vehicles: must name the 2 attacker\(s\)"):
+            vehicle_names(2, 1, names=names)
+    with pytest.raises(ConfigError, match="'D' is repeated"):
+        vehicle_names(1, 1, names=["D", "D"])
+
+
 def test_vehicle_names_refuse_clashing_names():
     with pytest.raises(ConfigError, match="'Drone2' is repeated"):
         vehicle_names(2, 1, attacker="Drone", defender="Drone2")

@@ -57,6 +57,7 @@ def team_settings(cfg: DictConfig, api_server_port: int | None = None) -> dict[s
         scenario.defenders,
         attacker=dynamics.get("attacker_name", "Attacker"),
         defender=dynamics.get("defender_name", "Defender"),
+        names=dynamics.get("vehicles"),
     )
     spawn_ned = dynamics.get("spawn") or {}
     spawn_ned = OmegaConf.to_container(spawn_ned) if not isinstance(spawn_ned, dict) else spawn_ned
@@ -230,8 +231,9 @@ def calibrate_command(args: Sequence[str]) -> str:
         source = f"the recording {options['recording']} ({len(episodes)} episodes)"
     else:
         node = OmegaConf.to_container(cfg.dynamics, resolve=True)
-        vehicle = str(options.get("vehicle", node["attacker_name"]))
-        node["attacker_name"] = vehicle
+        first = (node.get("vehicles") or [node["attacker_name"]])[0]
+        vehicle = str(options.get("vehicle", first))
+        node["attacker_name"], node["vehicles"] = vehicle, None
         sim = build_component(
             DYNAMICS, "dynamics", node, num_envs=1, num_drones=1, device="cpu", num_attackers=1
         )

@@ -109,6 +109,21 @@ def spawn_points(value: Any) -> str | None:
     return f"must be null or {{vehicle: [x, y, z]}} (NED m), got {show(value)}"
 
 
+def vehicle_list(value: Any) -> str | None:
+    """null, or the vehicles' names (non-empty, distinct strings; their number is checked
+    against the team where the env is built, which knows the scenario set's)."""
+    if value is None:
+        return None
+    if (
+        isinstance(value, list)
+        and value
+        and all(isinstance(v, str) and v.strip() for v in value)
+        and len(set(value)) == len(value)
+    ):
+        return None
+    return f"must be null or a list of distinct vehicle names, got {show(value)}"
+
+
 def reward_terms(value: Any) -> str | None:
     """A non-empty mapping of reward terms to weights (each weight is checked on its own)."""
     if isinstance(value, Mapping) and value:
@@ -240,6 +255,7 @@ DYNAMICS_KNOBS: dict[str, Rule] = {
     "endpoints": endpoints,
     "attacker_name": Text(),
     "defender_name": Text(),
+    "vehicles": vehicle_list,
     "connect_timeout_s": POSITIVE,
     "timeout_s": POSITIVE,
     "step_tolerance_s": NON_NEGATIVE,

@@ -572,7 +572,7 @@ class AirSimClient:
             raise AirSimError(
                 f"simulator at {self.address} has no vehicle {', '.join(map(repr, missing))}; "
                 f"its vehicles: {', '.join(have) or 'none'} (dynamics.attacker_name, "
-                "dynamics.defender_name; settings.json Vehicles)"
+                "dynamics.defender_name or dynamics.vehicles; settings.json Vehicles)"
             )
 
     def settings(self) -> dict[str, Any]:

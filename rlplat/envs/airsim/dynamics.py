@@ -76,6 +76,8 @@ class AirSimDynamics(DroneDynamics):
         endpoints: ``["host:port"]``, the simulator's RPC server.
         attacker_name: vehicle name of the first attacker (the i-th: ``f"{name}{i}"``).
         defender_name: vehicle name of the first defender (the i-th: ``f"{name}{i}"``).
+        vehicles: every vehicle's name, the attackers first, then the defenders (in place of
+            ``attacker_name`` and ``defender_name``).
         connect_timeout_s: s, the longest wait for the simulator to accept and answer.
         timeout_s: s, the longest wait for any later answer (must exceed one control period
             of simulator wall time, ``period / clock_speed``, above 1 its whole part).
@@ -100,6 +102,7 @@ class AirSimDynamics(DroneDynamics):
         endpoints: Sequence[str] = ("127.0.0.1:41451",),
         attacker_name: str = "Attacker",
         defender_name: str = "Defender",
+        vehicles: Sequence[str] | None = None,
         connect_timeout_s: float = 10.0,
         timeout_s: float = 10.0,
         step_tolerance_s: float = 0.02,
@@ -132,7 +135,7 @@ class AirSimDynamics(DroneDynamics):
         if not 0 <= num_attackers <= num_drones:
             raise ValueError(f"num_attackers must be in [0, {num_drones}], got {num_attackers}")
         self.names = vehicle_names(
-            num_attackers, num_drones - num_attackers, attacker_name, defender_name
+            num_attackers, num_drones - num_attackers, attacker_name, defender_name, vehicles
         )
         self.step_tolerance_s, self.on_time_mismatch = float(step_tolerance_s), on_time_mismatch
         self.clock_speed, self.move_margin_s = float(clock_speed), float(move_margin_s)

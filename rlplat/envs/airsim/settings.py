@@ -23,19 +23,36 @@ __all__ = ["effective_clock_speed", "make_settings", "vehicle_names", "write_set
 
 
 def vehicle_names(
-    attackers: int, defenders: int, attacker: str = "Attacker", defender: str = "Defender"
+    attackers: int,
+    defenders: int,
+    attacker: str = "Attacker",
+    defender: str = "Defender",
+    names: Sequence[str] | None = None,
 ) -> list[str]:
     """Names of a team's vehicles: attackers first, then defenders.
 
-    The first of each side gets the bare name and the i-th (i >= 2) gets ``f"{name}{i}"``:
+    ``names`` (``dynamics.vehicles``) names them all, in that order; without it the first of
+    each side gets the bare name and the i-th (i >= 2) gets ``f"{name}{i}"``:
     ``vehicle_names(2, 1)`` is ``["Attacker", "Attacker2", "Defender"]``.
 
     Raises:
-        ConfigError: a negative count, an empty name, or two vehicles with the same name.
+        ConfigError: a negative count, an empty name, ``names`` of another length than the
+            team, or two vehicles with the same name.
     """
     for field, count in (("attackers", attackers), ("defenders", defenders)):
         if isinstance(count, bool) or not isinstance(count, int) or count < 0:
             raise ConfigError(f"{field} must be an integer >= 0, got {count!r}")
+    if names is not None:
+        names = list(names) if not isinstance(names, str) else [names]
+        if len(names) != attackers + defenders or not all(
+            isinstance(n, str) and n.strip() for n in names
+        ):
+            raise ConfigError(
+                f"dynamics.vehicles: must name the {attackers} attacker(s), then the "
+                f"{defenders} defender(s): {attackers + defenders} non-empty names, got {names!r}"
+            )
+        _require_unique(names)
+        return names
     for field, name in (("attacker", attacker), ("defender", defender)):
         if not isinstance(name, str) or not name.strip():
             raise ConfigError(f"{field} vehicle name must be a non-empty string, got {name!r}")
