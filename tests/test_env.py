@@ -82,6 +82,19 @@ def test_registries_match_config_groups():
     }
 
 
+def test_a_vision_ellipsoid_set_apart_from_the_sets_is_a_warning(scenarios, caplog):
+    drawn = list(scenarios.spec.vision_semi_axes)
+    with caplog.at_level("WARNING", logger="rlplat.experiment.factory"):
+        make_env(scenarios=scenarios.path)  # the set's own: nothing to say
+        assert "env.vision_semi_axes" not in caplog.text
+        env = make_env("env.vision_semi_axes=[20,20,8]", scenarios=scenarios.path)
+    assert (
+        f"env.vision_semi_axes: the env sees within [20, 20, 8] m, the set's starts were drawn "
+        f"within {drawn} m" in caplog.text
+    )
+    assert env.semi_axes.tolist() == [20, 20, 8]
+
+
 @pytest.mark.parametrize(
     ("drone", "dim"),
     [

@@ -22,7 +22,7 @@ from rlplat.scenarios import (
     generate,
     write_scenario_set,
 )
-from rlplat.scenarios.generator import grid_keys
+from rlplat.scenarios.generator import grid_keys, offsets_out_of_view
 
 ROOT = Path(__file__).resolve().parent.parent
 SMALL = ("scenario.n_train=300", "scenario.n_val=60", "scenario.n_test=90")
@@ -385,7 +385,7 @@ def test_load_returns_tensors_matching_files(make_spec, tmp_path):
         ),
         (
             ("scenario.params.defender_z.high=1e5", "scenario.params.defender_z.resolution=0.001"),
-            r"makes more than 10,000,000 values in \[low=6, high=100000\]; at least 0.009999",
+            r"makes more than 10,000,000 values in \[low=6, high=100000\]; at least 0.01$",
         ),
         # Values the files or the float32 simulator cannot keep: a set its loader would refuse,
         # grid values that collide once rounded, or positions whose squares overflow.
@@ -437,8 +437,16 @@ def test_a_small_vision_ellipsoid_under_the_default_offsets_is_drawn(make_spec):
 
 def test_unsatisfiable_constraints_are_refused(make_spec):
     # The grid holds enough combinations, but the altitude constraint rules all of them out.
-    with pytest.raises(ConfigError, match=r"only 0 distinct scenarios meet the constraints"):
-        generate(make_spec(*SMALL, "scenario.min_altitude=50"))
+    spec = make_spec(*SMALL, "scenario.min_altitude=50", "scenario.vision_semi_axes=[40,42,13]")
+    n = spec.n_total
+    with pytest.raises(ConfigError) as e:
+        generate(spec)
+    message = str(e.value)
+    assert message.startswith(f"scenario: 0 distinct scenarios of the {n} requested ")
+    # The offsets that reach out of view are named: the x range passes the 40-m semi-axis.
+    assert "narrow the offsets out of view (attacker_dx [-48, 48] beyond 40 m), " in message
+    assert "\n" not in message
+    assert offsets_out_of_view(make_spec()) == []  # the default ranges are the ellipsoid's
 
 
 def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
@@ -479,7 +487,7 @@ def test_cli_a_set_that_cannot_be_drawn_exits_nonzero_and_writes_nothing(tmp_pat
     # Refused as the job draws it (after Hydra started), in a process of its own.
     r = _cli("out_dir=set", "scenario.min_altitude=50", cwd=tmp_path)
     assert r.returncode == 2
-    assert r.stderr.startswith("error: scenario: only 0 distinct scenarios")
+    assert r.stderr.startswith("error: scenario: 0 distinct scenarios of the ")
     assert len(r.stderr.strip().splitlines()) == 1 and list(tmp_path.iterdir()) == []
 
 
@@ -871,6 +879,38 @@ def test_a_set_written_with_more_bins_than_a_new_one_may_have_still_loads(make_s
     manifest["config"]["quality_bins"] = 20_000
     (tmp_path / "manifest.json").write_text(json.dumps(manifest))
     assert ScenarioSet.load(tmp_path).spec.quality_bins == 20_000
+
+
+def test_a_set_written_before_the_generators_newer_rules_still_loads(make_spec, tmp_path):
+    # A mean on a uniform parameter (which draws nothing from it), a gaussian mean outside the
+    # range and a grid of more values than the generator now takes were written by earlier
+    # versions with the same schema: the rules guard generation, the set loads.
+    write_scenario_set(make_spec("scenario.n_train=20", "scenario.n_val=5", "scenario.n_test=5"),
+                       tmp_path)  # fmt: skip
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    params = manifest["config"]["params"]
+    params["attacker_max_speed"]["mean"] = 3.0
+    params["defender_max_speed"].update(dist="gaussian", mean=7.0, std=1.0)
+    params["defender_z"].update(high=1e5, resolution=0.001)
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    spec = ScenarioSet.load(tmp_path).spec
+    assert spec.params["attacker_max_speed"].mean is None
+    assert spec.params["defender_max_speed"].mean == 7.0
+    assert spec.params["defender_z"].levels > 10_000_000
+
+
+def test_a_manifest_the_loader_refuses_names_scenarios_dir(make_spec, tmp_path):
+    from rlplat.experiment.config import compose_config
+    from rlplat.experiment.factory import resolve_scenarios
+
+    write_scenario_set(make_spec("scenario.n_train=20", "scenario.n_val=5", "scenario.n_test=5"),
+                       tmp_path)  # fmt: skip
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    manifest["config"]["params"]["defender_z"]["std"] = -1.0
+    manifest["config"]["params"]["defender_z"]["dist"] = "gaussian"
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ConfigError, match=r"^scenarios_dir: .*manifest.json: config.params"):
+        resolve_scenarios(compose_config("train", []), tmp_path)
 
 
 def test_a_set_of_one_split_reports_no_pair_to_compare(make_spec, tmp_path):

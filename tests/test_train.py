@@ -277,13 +277,19 @@ def test_evader_weight_draws_the_network_defenders_more_often(
 
 
 def test_evader_weight_needs_both_strategies_in_the_train_split(
-    tmp_path, tiny_run, write_small_set
+    tmp_path, tiny_run, write_small_set, refused_in_process
 ):
     route_flyers = write_small_set(tmp_path / "set", "scenario.strategy_mix={setpoints: 1, nn: 0}")
     n = len(route_flyers.split("train"))
     with pytest.raises(ConfigError, match=rf"^algo\.evader_weight: 3 weights .* has 0 of {n}$"):
         tiny_run(route_flyers, tmp_path / "run", "algo.evader_weight=3")
     assert not (tmp_path / "run").exists()  # refused before any work
+    # The command line refuses it before Hydra makes the run directory.
+    cli = tmp_path / "cli"
+    err = refused_in_process("train.py", f"scenarios_dir={route_flyers.path}",
+                             "algo.evader_weight=3", f"hydra.run.dir={cli}")  # fmt: skip
+    assert err.startswith("error: algo.evader_weight: 3 weights") and err.count("\n") == 1
+    assert not cli.exists()
 
 
 def test_actor_average_is_what_a_run_validates_checkpoints_and_resumes(

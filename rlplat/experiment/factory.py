@@ -66,8 +66,8 @@ def resolve_scenarios(
     if scenarios is not None:
         try:
             return ScenarioSet.load(scenarios)
-        except ScenarioFileError as e:  # the field the user set, then what is wrong there
-            raise ScenarioFileError(f"{field}: {e}") from None
+        except (ScenarioFileError, ConfigError) as e:  # the field set, then what is wrong there
+            raise type(e)(f"{field}: {e}") from None
     spec = ScenarioSpec.from_dict(OmegaConf.to_container(cfg.scenario, resolve=True))
     key = hashlib.sha256(json.dumps(spec.to_dict(), sort_keys=True).encode()).hexdigest()[:16]
     path = CACHE_DIR / "scenarios" / key
@@ -111,6 +111,10 @@ def with_set_scenario(cfg: DictConfig, scenarios: ScenarioSet) -> DictConfig:
     cfg = cfg.copy()
     with open_dict(cfg):  # every field, the team ones of a 1-vs-1 set too, as composed
         cfg.scenario = OmegaConf.create(json.loads(json.dumps(dataclasses.asdict(scenarios.spec))))
+    sees, drawn = list(cfg.env.vision_semi_axes), list(scenarios.spec.vision_semi_axes)
+    if sees != drawn:  # set apart from the scenario's (it follows the set's unless set)
+        log.warning("env.vision_semi_axes: the env sees within %s m, the set's starts were "
+                    "drawn within %s m", sees, drawn)  # fmt: skip
     return cfg
 
 

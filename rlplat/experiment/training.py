@@ -326,6 +326,7 @@ def checked_start(cfg: DictConfig, run_dir: Path | None, field: str = "hydra.run
     scenarios = resolve_scenarios(cfg, cfg.scenarios_dir)
     require_scenarios(scenarios, SPLITS, "training")  # it validates, and tests at its end
     flown_attackers(cfg.env.attackers, scenarios)
+    network_defenders(scenarios, cfg.algo.evader_weight)  # both kinds where they are weighted
     if cfg.scenarios_dir is not None:
         cfg = with_set_scenario(cfg, scenarios)
     config = OmegaConf.to_container(cfg, resolve=True)  # its paths absolute already

@@ -178,12 +178,26 @@ def _distinct_feasible(spec: ScenarioSpec, rng: np.random.Generator) -> np.ndarr
         if len(keys) >= n:
             log.debug("drew %d candidates for %d scenarios", drawn, n)
             return keys[:n]
+    wide = offsets_out_of_view(spec)
+    hint = f"narrow the offsets out of view ({'; '.join(wide)}), " if wide else ""
     raise ConfigError(
-        f"scenario: only {len(keys)} distinct scenarios meet the constraints after {drawn} draws "
-        f"({accepted} of them met them), {n} requested (n_train + n_val + n_test); lower the "
-        "counts, refine the resolution or relax the constraints (the attacker offset ranges "
-        "against the vision ellipsoid, min_distance, min_altitude, min_separation)"
+        f"scenario: {len(keys)} distinct scenarios of the {n} requested (n_train + n_val + "
+        f"n_test) meet the constraints after {drawn:,} draws ({accepted:,} draws met them); "
+        f"{hint}lower the counts, refine the resolution or relax the constraints (the attacker "
+        "offset ranges against the vision ellipsoid, min_distance, min_altitude, min_separation)"
     )
+
+
+def offsets_out_of_view(spec: ScenarioSpec) -> list[str]:
+    """The attacker offset ranges that reach beyond the vision ellipsoid's semi-axis on their
+    axis (draws there are never in view; with several attackers, all of them must be), as
+    ``"attacker_dx [-48, 48] beyond 8 m"``."""
+    out = []
+    for axis, semi in zip(("dx", "dy", "dz"), spec.vision_semi_axes, strict=True):
+        p = spec.params[f"attacker_{axis}"]
+        if max(-p.low, p.high) > semi:
+            out.append(f"attacker_{axis} [{p.low:g}, {p.high:g}] beyond {semi:g} m")
+    return out
 
 
 def _stratified_labels(spec: ScenarioSpec, strata: np.ndarray, rng: np.random.Generator):

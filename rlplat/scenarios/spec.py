@@ -240,7 +240,7 @@ class ScenarioSpec:
                 f"{where}.params: unknown {unknown} / missing {missing}; "
                 f"expected {', '.join(PARAM_NAMES)}"
             )
-        params = {n: _param(params_raw[n], f"{where}.params.{n}") for n in PARAM_NAMES}
+        params = {n: _param(params_raw[n], f"{where}.params.{n}", written) for n in PARAM_NAMES}
         if not params["defender_z"].low > 0:  # a start on or under the ground ends at once
             raise ConfigError(
                 f"{where}.params.defender_z.low: starts are above the ground (0 m), got "
@@ -297,7 +297,7 @@ class ScenarioSpec:
         if spread is None:
             spread = DEFAULT_DEFENDER_SPREAD
         else:
-            spread = _param(spread, f"{where}.defender_spread")
+            spread = _param(spread, f"{where}.defender_spread", written)
 
         spec = cls(
             seed=_int(raw["seed"], f"{where}.seed", low=0),
@@ -369,7 +369,11 @@ def _floats(v: Any, where: str, n: int) -> tuple[float, ...]:
     return tuple(float(x) for x in items)
 
 
-def _param(raw: Any, where: str) -> ParamSpec:
+def _param(raw: Any, where: str, written: bool = False) -> ParamSpec:
+    """One parameter's range, grid and distribution. ``written`` (a set's manifest): the rules
+    that only guard generation are not applied (sets written before them load): the grid's
+    size, a gaussian mean outside the range, and a mean or std on a uniform parameter, which
+    draws nothing from them (dropped)."""
     if not isinstance(raw, Mapping):
         raise ConfigError(f"{where}: expected a mapping of low, high, resolution, ..., got {raw!r}")
     raw = dict(raw)
@@ -383,13 +387,11 @@ def _param(raw: Any, where: str) -> ParamSpec:
             raise ConfigError(
                 f"{where}.{key}: must lie in [-{MAX_MAGNITUDE:g}, {MAX_MAGNITUDE:g}], got {value:g}"
             )
-    too_fine = ConfigError(
-        f"{where}.resolution: {res:g} is finer than the files keep (6 decimals) or makes "
-        f"more than {MAX_LEVELS:,} values in [low={low:g}, high={high:g}]; at least "
-        f"{max(MIN_RESOLUTION, (high - low) / (MAX_LEVELS - 1)):.6g}"
-    )
-    if 0 < res < MIN_RESOLUTION:
-        raise too_fine
+    if 0 < res < MIN_RESOLUTION and not written:
+        raise ConfigError(
+            f"{where}.resolution: {res:g} is finer than the files keep (6 decimals); at least "
+            f"{MIN_RESOLUTION:g}"
+        )
     for key, value in (("low", low), ("high", high), ("resolution", res)):
         if round(value, 6) != value:  # the files keep 6 decimals: grid values would move
             raise ConfigError(
@@ -398,8 +400,13 @@ def _param(raw: Any, where: str) -> ParamSpec:
     # Counted in millionths, exactly: high - low in floats is rounded (5.0 - 4.9 < 0.1).
     if not 0 < micro(res) <= micro(high) - micro(low):
         raise ConfigError(f"{where}.resolution: must be in (0, high - low], got {res}")
-    if ParamSpec(low=low, high=high, resolution=res).levels > MAX_LEVELS:
-        raise too_fine
+    if ParamSpec(low=low, high=high, resolution=res).levels > MAX_LEVELS and not written:
+        # the coarsest step of 6 decimals that keeps the values within MAX_LEVELS
+        least = math.ceil((micro(high) - micro(low)) / (MAX_LEVELS - 1)) / 1e6
+        raise ConfigError(
+            f"{where}.resolution: {res:g} makes more than {MAX_LEVELS:,} values in "
+            f"[low={low:g}, high={high:g}]; at least {least:g}"
+        )
     dist = raw.get("dist", "uniform")
     if dist not in DISTRIBUTIONS:
         raise ConfigError(
@@ -407,6 +414,8 @@ def _param(raw: Any, where: str) -> ParamSpec:
         )
     mean = raw.get("mean")
     std = raw.get("std")
+    if dist != "gaussian" and written:
+        mean = std = None
     if dist != "gaussian":  # would change the set's digest and draw nothing
         for key, value in (("mean", mean), ("std", std)):
             if value is not None:
@@ -416,7 +425,7 @@ def _param(raw: Any, where: str) -> ParamSpec:
     if dist == "gaussian":
         mean = (low + high) / 2 if mean is None else _finite(mean, f"{where}.mean")
         std = (high - low) / 6 if std is None else _finite(std, f"{where}.std")
-        if not low <= mean <= high:
+        if not low <= mean <= high and not written:
             raise ConfigError(f"{where}.mean: must lie in [low={low}, high={high}], got {mean}")
         if not std > 0:
             raise ConfigError(f"{where}.std: must be > 0 for a gaussian, got {std}")
