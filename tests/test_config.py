@@ -442,6 +442,12 @@ def test_a_run_saved_before_a_key_existed_resumes_with_its_neutral_value():
     with pytest.raises(ConfigError, match=r"action\.unreachable \(absent -> 'head_off'\)"):
         check_resume(saved, resolved("drone=attacker_v10", "action.unreachable=head_off",
                                      "resume=true"))  # fmt: skip
+    # An AirSim run saved before dynamics.vehicles existed.
+    saved = resolved("dynamics=airsim")
+    del saved["dynamics"]["vehicles"]
+    check_resume(saved, resolved("dynamics=airsim", "resume=true"))
+    with pytest.raises(ConfigError, match=r"dynamics\.vehicles \(absent -> \['A', 'D'\]\)"):
+        check_resume(saved, resolved("dynamics=airsim", "dynamics.vehicles=[A,D]", "resume=true"))
 
 
 def test_check_resume_names_added_and_removed_keys():

@@ -656,6 +656,7 @@ ADDED_KEYS: dict[str, Any] = {
     "algo.demonstration_repeat": 4,
     "init_from": None,
     "train.keep_checkpoints": False,
+    "dynamics.vehicles": None,
 }
 
 
