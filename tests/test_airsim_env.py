@@ -646,6 +646,13 @@ def test_training_without_a_simulator_is_refused_before_the_run_directory(
     )  # fmt: skip
     assert err.startswith(f"error: dynamics.endpoints: no simulator at 127.0.0.1:{port} ")
     assert err.count("\n") == 1 and not run.exists()
+    # A vehicle list of another length than the team is refused there too, before asking.
+    err = refused_in_process(
+        "train.py", *tiny, *airsim(f"127.0.0.1:{port}"), "algo.num_envs=1",
+        "dynamics.vehicles=[Drone1]", f"scenarios_dir={scenarios.path}", f"hydra.run.dir={run}",
+    )  # fmt: skip
+    assert err.startswith("error: dynamics.vehicles: must name the 1 attacker(s), then the 1 ")
+    assert err.count("\n") == 1 and not run.exists()
 
 
 def test_a_simulator_that_accepts_but_never_answers_fails_within_the_connect_timeout(

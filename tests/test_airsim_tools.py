@@ -106,6 +106,17 @@ def test_calibrate_recovers_the_servers_constants_into_a_usable_dynamics_file(tm
     assert check.summary()["all"]["max_m"] < 0.01
 
 
+def test_calibrate_flies_the_first_listed_vehicle_and_refuses_a_list_that_is_none(tmp_path):
+    out = tmp_path / "fit.yaml"
+    with pytest.raises(ConfigError, match=r"^dynamics\.vehicles: must be null or a list of"):
+        calibrate_command(["dynamics.endpoints=[127.0.0.1:1]", "dynamics.vehicles=Drone1"])
+    plan = ("amplitudes=[1.0]", "axes=[x]", "hold_s=1.0", "rest_s=0.5", "settle_s=0.2")
+    with server() as srv:
+        calibrate_command([endpoint(srv), "dynamics.vehicles=[Defender,Attacker]", f"out={out}",
+                           *plan])  # fmt: skip
+    assert f"the simulator at {srv.address} (vehicle Defender)" in out.read_text()
+
+
 def test_calibrate_fits_a_recording_offline_and_keeps_what_it_cannot_see(tmp_path):
     # Horizontal steps only, within the acceleration limit: tau_xy is fitted; a_xy_max is
     # never reached and every vertical constant is unseen, so they are kept.

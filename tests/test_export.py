@@ -151,7 +151,8 @@ def test_export_writes_verified_artifacts_and_their_card(run, exported):
         in header
     )
     assert "action: in [-1, 1]; times the drone's maximum speed per axis, the velocity" in header
-    assert f"Frame: {card['interface']['frame']}." in header  # a host in NED flips z
+    assert f"Frame: {card['interface']['frame']}." in header  # NED swaps x, y and negates z
+    assert "from NED: (x, y, z) = (y_ned, x_ned, -z_ned)" in card["interface"]["frame"]
 
 
 def test_the_written_files_compute_the_torch_actions(run, exported, scenarios, tmp_path):

@@ -381,7 +381,8 @@ def test_load_returns_tensors_matching_files(make_spec, tmp_path):
         # A grid finer than the files keep, or too large to bin.
         (
             ("scenario.params.defender_z.resolution=1e-9",),
-            r"scenario.params.defender_z.resolution: 1e-09 is finer than the files keep",
+            r"scenario.params.defender_z.resolution: 1e-09 is finer than the files keep "
+            r"\(6 decimals\); at least 3e-06$",
         ),
         (
             ("scenario.params.defender_z.high=1e5", "scenario.params.defender_z.resolution=0.001"),

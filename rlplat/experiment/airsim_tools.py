@@ -27,6 +27,7 @@ from rlplat.envs.airsim import make_settings, ned_to_enu, vehicle_names, write_s
 from rlplat.envs.airsim.client import parse_endpoint
 from rlplat.errors import ConfigError
 from rlplat.experiment.config import CONF_DIR, compose_config
+from rlplat.experiment.schema import vehicle_list
 from rlplat.io import atomic_write_text
 
 SPAWN_SPACING = 5.0  # m between default spawn points (ten times the contact radius of a quad)
@@ -231,7 +232,11 @@ def calibrate_command(args: Sequence[str]) -> str:
         source = f"the recording {options['recording']} ({len(episodes)} episodes)"
     else:
         node = OmegaConf.to_container(cfg.dynamics, resolve=True)
-        first = (node.get("vehicles") or [node["attacker_name"]])[0]
+        listed = node.get("vehicles")
+        problem = vehicle_list(listed)
+        if problem:
+            raise ConfigError(f"dynamics.vehicles: {problem}")
+        first = listed[0] if listed else node["attacker_name"]
         vehicle = str(options.get("vehicle", first))
         node["attacker_name"], node["vehicles"] = vehicle, None
         sim = build_component(

@@ -88,7 +88,10 @@ ONNX_BATCH = 1024
 #: check a build of ``policy.c`` (another compiler, flags, target) without Python.
 CARD_SAMPLES = 16
 #: The world frame of every vector the artifacts read and the velocity command they make.
-FRAME = "world frame ENU (x east, y north, z up; m, m/s, m/s^2), the command's too"
+FRAME = (
+    "world frame ENU (x east, y north, z up; m, m/s, m/s^2), the command's too; "
+    "from NED: (x, y, z) = (y_ned, x_ned, -z_ned)"
+)
 
 
 @dataclass(frozen=True)

@@ -90,7 +90,8 @@ def with_set_scenario(cfg: DictConfig, scenarios: ScenarioSet) -> DictConfig:
     """``cfg`` with its ``scenario`` node replaced by the config ``scenarios`` was generated
     with (a set loaded from ``scenarios_dir``), so that what reads it (``env.vision_semi_axes``,
     the run's ``config.yaml``) follows the set flown; a composed ``scenario`` that differs is
-    not flown, and a warning names how it differs. ``cfg`` itself is left as it is."""
+    not flown, and a warning names how it differs; an ``env.vision_semi_axes`` set apart
+    from the set's is a warning too. ``cfg`` itself is left as it is."""
     if scenarios.spec is None:
         return cfg
     spec = ScenarioSpec.from_dict(OmegaConf.to_container(cfg.scenario, resolve=True))

@@ -367,6 +367,10 @@ def preflight(cfg: DictConfig, run_dir: Path | None, field: str = "hydra.run.dir
     start = checked_start(cfg, run_dir, field)
     cfg = start.cfg
     if cfg.dynamics.name == "airsim":
+        from rlplat.envs.airsim.settings import vehicle_names
+
+        flown = flown_attackers(cfg.env.attackers, start.scenarios)
+        vehicle_names(flown, start.scenarios.defenders, names=cfg.dynamics.get("vehicles"))
         # Building its env connects to the simulators, which train() does; here, for a run
         # launched here, only whether each answers, so that a simulator not started leaves no
         # run directory behind (a sweep's jobs may run where their simulators are: a cluster).

@@ -387,10 +387,12 @@ def _param(raw: Any, where: str, written: bool = False) -> ParamSpec:
             raise ConfigError(
                 f"{where}.{key}: must lie in [-{MAX_MAGNITUDE:g}, {MAX_MAGNITUDE:g}], got {value:g}"
             )
-    if 0 < res < MIN_RESOLUTION and not written:
+    # the finest step of 6 decimals (what the files keep) that makes at most MAX_LEVELS values
+    least = max(micro(MIN_RESOLUTION), math.ceil((micro(high) - micro(low)) / (MAX_LEVELS - 1)))
+    if 0 < res < MIN_RESOLUTION:
         raise ConfigError(
             f"{where}.resolution: {res:g} is finer than the files keep (6 decimals); at least "
-            f"{MIN_RESOLUTION:g}"
+            f"{least / 1e6:g}"
         )
     for key, value in (("low", low), ("high", high), ("resolution", res)):
         if round(value, 6) != value:  # the files keep 6 decimals: grid values would move
@@ -401,11 +403,9 @@ def _param(raw: Any, where: str, written: bool = False) -> ParamSpec:
     if not 0 < micro(res) <= micro(high) - micro(low):
         raise ConfigError(f"{where}.resolution: must be in (0, high - low], got {res}")
     if ParamSpec(low=low, high=high, resolution=res).levels > MAX_LEVELS and not written:
-        # the coarsest step of 6 decimals that keeps the values within MAX_LEVELS
-        least = math.ceil((micro(high) - micro(low)) / (MAX_LEVELS - 1)) / 1e6
         raise ConfigError(
             f"{where}.resolution: {res:g} makes more than {MAX_LEVELS:,} values in "
-            f"[low={low:g}, high={high:g}]; at least {least:g}"
+            f"[low={low:g}, high={high:g}]; at least {least / 1e6:g}"
         )
     dist = raw.get("dist", "uniform")
     if dist not in DISTRIBUTIONS:

@@ -281,12 +281,12 @@ class AirSimDynamics(DroneDynamics):
             self.client.set_position(name, world_to_local(world_ned[i], self.spawn[name]).tolist())
         placed = self.position.clone()
         self._timestamp_ns = self._read("the drones after placing them")
-        off = (self.position - placed).abs().amax(-1)[0]  # (drones,) m
+        off = (self.position - placed).norm(dim=-1)[0]  # (drones,) m
         if not self._misplaced and bool((off > PLACEMENT_TOLERANCE_M).any()):
             far = int(off.argmax())
             log.warning("simulator at %s: %s reads %.2f m from where it was placed (the "
-                        "simulator applies poses late, or spawn points differ from its "
-                        "settings); the episode starts where the drones read",
+                        "simulator applies poses late, or not at all); the episode starts "
+                        "where the drones read",
                         self.client.address, self.names[far], float(off[far]))  # fmt: skip
             self._misplaced = True
         self.collided = torch.zeros_like(self.collided)
