@@ -23,6 +23,7 @@ from rlplat.scenarios import (
     write_scenario_set,
 )
 from rlplat.scenarios.generator import grid_keys, offsets_out_of_view
+from rlplat.scenarios.quality import quality_report
 
 ROOT = Path(__file__).resolve().parent.parent
 SMALL = ("scenario.n_train=300", "scenario.n_val=60", "scenario.n_test=90")
@@ -433,7 +434,18 @@ def test_a_small_vision_ellipsoid_under_the_default_offsets_is_drawn(make_spec):
     # batch sizes for as many rounds as ever (the same files), then grows them with the rejection.
     spec = make_spec("scenario.vision_semi_axes=[10,10,5]", "scenario.n_train=300",
                      "scenario.n_val=100", "scenario.n_test=100")  # fmt: skip
-    assert sum(len(c.ids) for c in generate(spec).values()) == 500
+    splits = generate(spec)
+    assert sum(len(c.ids) for c in splits.values()) == 500
+    # Its report asks only for the offset bins the ellipsoid reaches: the x offsets lie in
+    # [-10, 10], so of [-48, 48]'s ten bins the four from -19.2 to 19.2 m.
+    missing = quality_report(spec, splits)["completeness"]["missing"]
+    offsets = [m for m in missing if "attacker_d" in m]
+    assert offsets and all(
+        float(low) < axis and float(high) > -axis
+        for m in offsets
+        for (low, high), axis in [(m.split("[")[1].rstrip("]").split(", "),
+                                   {"dx": 10, "dy": 10, "dz": 5}[m.split("attacker_")[1][:2]])]
+    ), offsets  # fmt: skip
 
 
 def test_unsatisfiable_constraints_are_refused(make_spec):
