@@ -52,6 +52,12 @@ from rlplat.scenarios import STRATEGIES
 HEAD_OFF = {"head_off": "every", "far-head_off": "far", "near-head_off": "near"}
 
 
+def nearest_seat(distance: torch.Tensor) -> torch.Tensor:
+    """(*B, seats) bool: the seat nearest its defender (``distance``, (*B, seats) m; ties
+    both), the one a network defender sees and evades."""
+    return distance <= distance.amin(-1, keepdim=True)
+
+
 class SeatVariant(TensorDictModuleBase):
     """The actor's action (*B, seats, A), each seat's correction scaled towards 0 (the law)
     as ``variant`` says; ``position`` is the slice of a seat's observation that holds the
@@ -71,7 +77,7 @@ class SeatVariant(TensorDictModuleBase):
         td = self.actor(td)
         action = td.get(self.action_key)
         distance = td.get(self.obs_key)[..., self.position].norm(dim=-1)  # (*B, seats)
-        nearest = distance <= distance.amin(-1, keepdim=True)
+        nearest = nearest_seat(distance)
         if self.variant == "policy":
             scale = torch.ones_like(distance)
         elif self.variant == "law":
@@ -103,8 +109,7 @@ def seat_unreachable(action_fn, seats: str):
             action_fn.unreachable = mode
             flown[mode] = law.guidance(action_fn, rel, v_other, max_speed, a_other, meeting)
         action_fn.unreachable = trained
-        distance = rel.norm(dim=-1)  # (*B, seats)
-        nearest = distance <= distance.amin(-1, keepdim=True)
+        nearest = nearest_seat(rel.norm(dim=-1))
         heads_off = {"every": torch.ones_like(nearest), "far": ~nearest, "near": nearest}[seats]
         return torch.where(heads_off.unsqueeze(-1), flown["head_off"], flown["chase"])
 
@@ -136,8 +141,7 @@ def seat_offset(action_fn, seat: str, offset: float, within: float):
         flown = law.guidance(action_fn, rel, v_other, max_speed, a_other, meeting)
         aim = aim_beside(rel, v_other, offset, within)
         beside = GuidedVelocityAction.guidance(action_fn, aim, v_other, max_speed)
-        distance = rel.norm(dim=-1)  # (*B, seats)
-        nearest = distance <= distance.amin(-1, keepdim=True)
+        nearest = nearest_seat(rel.norm(dim=-1))
         flies = ~nearest if seat == "far" else nearest
         return torch.where(flies.unsqueeze(-1), beside, flown)
 

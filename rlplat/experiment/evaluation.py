@@ -49,6 +49,7 @@ from rlplat.experiment.factory import (
     eval_num_envs,
     require_scenarios,
     resolve_scenarios,
+    warn_vision_apart,
 )
 from rlplat.experiment.schema import (
     config_diff,
@@ -383,11 +384,7 @@ def evaluate_run(
     expected = run_summary.get("scenario_digest") or (state or {}).get("scenario_digest")
     source = "summary.json" if "scenario_digest" in run_summary else "checkpoint"
     same_set = check_scenarios(scenarios, expected, strict_scenarios, source)
-    drawn = None if scenarios.spec is None else list(scenarios.spec.vision_semi_axes)
-    if drawn is not None and drawn != list(cfg.env.vision_semi_axes):
-        log.warning("env.vision_semi_axes: the run sees within %s m, the set's starts were "
-                    "drawn within %s m; evaluating with the run's", list(cfg.env.vision_semi_axes),
-                    drawn)  # fmt: skip
+    warn_vision_apart(cfg.env.vision_semi_axes, scenarios, "the run", "; evaluating with the run's")
     require_scenarios(scenarios, [split], "the evaluation")
     n = len(scenarios.split(split))
     # A baseline flies its own velocity commands (eq. 2), not through a learner's action.

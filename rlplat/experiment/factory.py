@@ -112,11 +112,19 @@ def with_set_scenario(cfg: DictConfig, scenarios: ScenarioSet) -> DictConfig:
     cfg = cfg.copy()
     with open_dict(cfg):  # every field, the team ones of a 1-vs-1 set too, as composed
         cfg.scenario = OmegaConf.create(json.loads(json.dumps(dataclasses.asdict(scenarios.spec))))
-    sees, drawn = list(cfg.env.vision_semi_axes), list(scenarios.spec.vision_semi_axes)
-    if sees != drawn:  # set apart from the scenario's (it follows the set's unless set)
-        log.warning("env.vision_semi_axes: the env sees within %s m, the set's starts were "
-                    "drawn within %s m", sees, drawn)  # fmt: skip
+    warn_vision_apart(cfg.env.vision_semi_axes, scenarios, "the env")  # set apart from it
     return cfg
+
+
+def warn_vision_apart(
+    sees: Sequence[float], scenarios: ScenarioSet, who: str, flown: str = ""
+) -> None:
+    """A warning where the vision ellipsoid ``who`` sees within differs from the one the
+    set's starts were drawn in (``flown``: what is then done, appended)."""
+    drawn = None if scenarios.spec is None else list(scenarios.spec.vision_semi_axes)
+    if drawn is not None and list(sees) != drawn:
+        log.warning("env.vision_semi_axes: %s sees within %s m, the set's starts were drawn "
+                    "within %s m%s", who, list(sees), drawn, flown)  # fmt: skip
 
 
 def require_scenarios(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import re
 from dataclasses import dataclass
 from itertools import combinations
 
@@ -193,11 +194,19 @@ def offsets_out_of_view(spec: ScenarioSpec) -> list[str]:
     axis (draws there are never in view; with several attackers, all of them must be), as
     ``"attacker_dx [-48, 48] beyond 8 m"``."""
     out = []
-    for axis, semi in zip(("dx", "dy", "dz"), spec.vision_semi_axes, strict=True):
-        p = spec.params[f"attacker_{axis}"]
+    for name in ("attacker_dx", "attacker_dy", "attacker_dz"):
+        p, semi = spec.params[name], offset_reach(spec, name)
         if max(-p.low, p.high) > semi:
-            out.append(f"attacker_{axis} [{p.low:g}, {p.high:g}] beyond {semi:g} m")
+            out.append(f"{name} [{p.low:g}, {p.high:g}] beyond {semi:g} m")
     return out
+
+
+def offset_reach(spec: ScenarioSpec, name: str) -> float | None:
+    """The vision ellipsoid's semi-axis (m) that bounds the attacker offset column ``name``
+    (``attacker_dx``, ``attacker1_dz``, ...: the first defender starts in every attacker's
+    view), or None for another column."""
+    match = re.fullmatch(r"attacker\d*_d([xyz])", name)
+    return None if match is None else spec.vision_semi_axes["xyz".index(match.group(1))]
 
 
 def _stratified_labels(spec: ScenarioSpec, strata: np.ndarray, rng: np.random.Generator):

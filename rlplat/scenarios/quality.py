@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import re
 import warnings
 from collections.abc import Callable
 from itertools import combinations
@@ -11,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from rlplat.scenarios.generator import SplitColumns, grid_keys
+from rlplat.scenarios.generator import SplitColumns, grid_keys, offset_reach
 from rlplat.scenarios.spec import STRATEGIES, ScenarioSpec
 
 
@@ -72,7 +71,7 @@ def _completeness(spec: ScenarioSpec, splits: dict[str, SplitColumns]) -> dict[s
             # The grid as the files hold it (6 decimals): 0.1 + 2 * 0.1 is 0.30000000000000004,
             # whose edge a written 0.3 falls below.
             values = np.round(p.low + np.arange(p.levels) * p.resolution, 6)
-            reach = _in_view(spec, name)
+            reach = offset_reach(spec, name)
             if reach is not None:  # an offset beyond the vision ellipsoid is never drawn
                 values = values[np.abs(values) <= reach]
             grid, _ = np.histogram(values, bins=edges)
@@ -81,14 +80,6 @@ def _completeness(spec: ScenarioSpec, splits: dict[str, SplitColumns]) -> dict[s
                 low, high = (_edge(x, step) for x in edges[b : b + 2])
                 missing.append(f"{split}: {name} bin [{low}, {high}]")
     return {"complete": not missing, "bins": spec.quality_bins, "missing": missing}
-
-
-def _in_view(spec: ScenarioSpec, name: str) -> float | None:
-    """The vision ellipsoid's semi-axis (m) that bounds the attacker offset column ``name``
-    (``attacker_dx``, ``attacker1_dz``, ...: the first defender is in every attacker's view at
-    the start), or None for another column."""
-    match = re.fullmatch(r"attacker\d*_d([xyz])", name)
-    return None if match is None else spec.vision_semi_axes["xyz".index(match.group(1))]
 
 
 def _edge(x: float, step: float) -> str:

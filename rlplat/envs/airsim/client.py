@@ -491,7 +491,7 @@ class AirSimClient:
                 ) from None
             if isinstance(reason, _Expired):
                 wait = self._api.client.deadline_s
-                hint = f"; {START_HINT}" if connecting else self._pending_hint(method)
+                hint = f"; {START_HINT}" if connecting else self._pending_hint()
                 raise AirSimError(
                     f"simulator at {self.address} stopped answering: no answer to {method} "
                     f"({what}) within {wait:g} s ({self._field}){hint}"
@@ -506,11 +506,11 @@ class AirSimClient:
                 f"simulator at {self.address} refused {method} ({what}): {words}", words
             ) from None
 
-    def _pending_hint(self, method: str) -> str:
-        """Why a wait may have expired with moves in flight: each holds a server thread until
-        the next one cancels it (AirSim serves as many calls at once as vehicles + 4)."""
+    def _pending_hint(self) -> str:
+        """Why a wait may have expired with moves in flight (sent, never waited on): each holds
+        a server thread until the next one cancels it (AirSim serves vehicles + 4 at once)."""
         pending = sum(not f._set_flag for f in self._moves.values())
-        if not pending or method == "moveByVelocity":
+        if not pending:
             return ""
         return (
             f"; {pending} moveByVelocity calls were still open, and a server that serves "
