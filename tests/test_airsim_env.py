@@ -611,6 +611,23 @@ def test_a_checking_call_refused_in_other_words_than_rpclibs_flies_with_a_warnin
         env.close()
 
 
+def test_a_simulator_without_ping_or_collision_reports_flies_with_a_warning(scenarios, caplog):
+    # ping only checks the connection (an answer, even a refusal, shows a server is there);
+    # the collision flag only feeds `collided`: a stand-in without them still flies.
+    with TestServer(SETTINGS) as srv:
+        del srv._methods["ping"], srv._methods["simGetCollisionInfo"]
+        with caplog.at_level("WARNING", logger="rlplat.envs.airsim.client"):
+            env = airsim_env(scenarios, srv.address)
+            td = env.rollout(3)
+            env.rollout(2)
+        assert env.dynamics.last_advance_s == pytest.approx(PERIOD, abs=1e-9)
+        assert not td["next", "positions"][:, -1].equal(td["positions"][:, 0])  # it flew
+        assert not td["next", "collided"].any()
+        assert caplog.text.count("has no ping: connected without it") == 1  # the env's client
+        assert caplog.text.count("has no simGetCollisionInfo: no collisions are reported") == 1
+        env.close()
+
+
 # Faults: one line each, within a bounded time ----------------------------------------------
 
 
@@ -682,6 +699,37 @@ def test_a_simulator_that_stops_answering_fails_after_timeout_s_naming_the_call(
     assert "simContinueForTime" in message and "dynamics.timeout_s" in message
     # The moves of the step wait beside it: a server serving fewer calls at once hangs so too.
     assert "2 moveByVelocity calls were still open" in message and "fewer than 3 calls" in message
+    env.close()
+
+
+def test_a_pose_applied_a_few_frames_late_is_waited_for(server, scenarios, caplog):
+    # An older simulator applies a pose on a later frame, paused as it is: the env reads again
+    # until the drones are where it placed them, and the episode starts there.
+    args, place = server._methods["simSetVehiclePose"]
+    state_args, state = server._methods["getMultirotorState"]
+    poses, reads = [], [0]
+
+    def later(*params):  # held, applied after a few reads
+        poses.append(params)
+        reads[0] = 0
+
+    def read(*params):
+        reads[0] += 1
+        if reads[0] > 4:
+            for pose in poses:
+                place(*pose)
+            poses.clear()
+        return state(*params)
+
+    env = airsim_env(scenarios, server.address)
+    env.reset()
+    server._methods["simSetVehiclePose"] = (args, later)
+    server._methods["getMultirotorState"] = (state_args, read)
+    with caplog.at_level("WARNING", logger="rlplat.envs.airsim.dynamics"):
+        td = env.reset()
+        env.rand_step(td)
+    assert "from where it was placed" not in caplog.text
+    assert env.dynamics.placement_error_m <= 0.1
     env.close()
 
 

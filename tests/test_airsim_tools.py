@@ -17,6 +17,7 @@ from omegaconf import OmegaConf
 
 from rlplat.airsim import main as airsim_main
 from rlplat.envs.airsim import make_settings, vehicle_names
+from rlplat.envs.airsim.client import AirSimError
 from rlplat.envs.airsim.recording import (
     COLUMNS,
     Recorder,
@@ -115,6 +116,19 @@ def test_calibrate_flies_the_first_listed_vehicle_and_refuses_a_list_that_is_non
         calibrate_command([endpoint(srv), "dynamics.vehicles=[Defender,Attacker]", f"out={out}",
                            *plan])  # fmt: skip
     assert f"the simulator at {srv.address} (vehicle Defender)" in out.read_text()
+
+
+def test_calibrate_refuses_to_fit_from_where_the_drone_was_not_placed(tmp_path):
+    out = tmp_path / "fit.yaml"
+    with server() as srv:  # a simulator that never applies a pose: the drone stays at spawn
+        args, _ = srv._methods["simSetVehiclePose"]
+        srv._methods["simSetVehiclePose"] = (args, lambda *_: None)
+        with pytest.raises(AirSimError) as info:
+            calibrate_command([endpoint(srv), f"out={out}", "axes=[x]", "amplitudes=[1.0]"])
+    message = str(info.value)
+    assert re.match(r"calibrate: Attacker reads \d+\.\d\d m from where it was placed", message)
+    assert "step test x+5" in message and "\n" not in message
+    assert not out.exists()
 
 
 def test_calibrate_fits_a_recording_offline_and_keeps_what_it_cannot_see(tmp_path):

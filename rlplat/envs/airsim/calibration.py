@@ -38,6 +38,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from rlplat.envs.airsim.client import AirSimError
+from rlplat.envs.airsim.dynamics import PLACEMENT_TOLERANCE_M
 from rlplat.envs.airsim.recording import Episode
 from rlplat.envs.dynamics import DroneDynamics, VelocityDynamics
 from rlplat.errors import ConfigError
@@ -142,6 +144,13 @@ def fly_steps(dynamics: DroneDynamics, plan: StepPlan, spawn_enu: Sequence[float
     for axis, speed in plan.tests():
         commands = plan.commands(axis, speed)
         dynamics.reset(torch.ones(1, dtype=torch.bool), start, torch.zeros(1, 1, 3), bound)
+        off = float((dynamics.position[0, 0] - start[0, 0]).norm())
+        if off > PLACEMENT_TOLERANCE_M:  # a fit from where it did not start would be wrong
+            raise AirSimError(
+                f"calibrate: {name} reads {off:.2f} m from where it was placed for the step "
+                f"test {axis}{speed:+g} (a simulator that applies poses late, or not at all); "
+                "a fit from there would be wrong, so none is made"
+            )
         t, p, v = [0.0], [dynamics.position[0].double().numpy()], [dynamics.velocity[0]]
         for cmd in commands:
             dynamics.advance(torch.tensor(cmd, dtype=torch.float32).view(1, 1, 3), plan.period)

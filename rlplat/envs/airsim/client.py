@@ -58,8 +58,9 @@ class AirSimError(RlplatError):
 
 class AirSimRefused(AirSimError):
     """The simulator answered a call with an error (rather than not answering): for a call
-    that only checks (``listVehicles``, ``getSettingsString``, ``simIsPaused``), a simulator
-    without it, whatever its words. ``reason``: its words, on one line."""
+    that only checks (``ping``, ``listVehicles``, ``getSettingsString``, ``simIsPaused``) or
+    only reports (``simGetCollisionInfo``), a simulator without it, whatever its words.
+    ``reason``: its words, on one line."""
 
     def __init__(self, message: str, reason: str | None = None) -> None:
         super().__init__(message)  # one argument: it pickles (a worker's fault) as it is
@@ -425,6 +426,7 @@ class AirSimClient:
         self._api, self._field = None, "dynamics.timeout_s"
         self._moves: dict[str, Any] = {}  # the last move sent to each vehicle
         self._no_is_paused = False  # the simulator lacks simIsPaused
+        self._no_collisions = False  # the simulator lacks simGetCollisionInfo
         try:
             import cosysairsim
         except ImportError:
@@ -446,6 +448,9 @@ class AirSimClient:
         self._api = api
         try:
             self.call("ping", "connecting", api.ping)
+        except AirSimRefused as e:  # an msgpack-rpc answer: a server is there, without ping
+            log.warning("simulator at %s has no ping%s: connected without it",
+                        self.address, _words(e))  # fmt: skip
         except BaseException:
             self.close()
             raise
@@ -689,11 +694,21 @@ class AirSimClient:
         on read (read it once per step). The fields are read from the answers' maps: an answer
         that lacks one is an :class:`AirSimError` naming it (never a default)."""
         states = [self.send("getMultirotorState", n) for n in names]
-        hits = [self.send("simGetCollisionInfo", n) for n in names]
-        methods = ["getMultirotorState"] * len(names) + ["simGetCollisionInfo"] * len(names)
-        answers = self.gather(states + hits, methods, what)
+        asks = not self._no_collisions
+        hits = [self.send("simGetCollisionInfo", n) for n in names] if asks else []
+        methods = ["getMultirotorState"] * len(names) + ["simGetCollisionInfo"] * len(hits)
+        try:
+            answers = self.gather(states + hits, methods, what)
+        except AirSimRefused as e:
+            if not (asks and "simGetCollisionInfo" in str(e)):
+                raise
+            self._no_collisions = True  # the states' answers came first: they were fine
+            log.warning("simulator at %s has no simGetCollisionInfo%s: no collisions are reported",
+                        self.address, _words(e))  # fmt: skip
+            return self.read(names, what)
         self.check_moves()  # a refused move has been answered by now: it came first
-        raw_states, raw_hits = answers[: len(names)], answers[len(names) :]
+        raw_states = answers[: len(names)]
+        raw_hits = answers[len(names) :] if asks else [{"has_collided": False}] * len(names)
         out, hits = [], []
         for name, raw in zip(names, raw_states, strict=True):
             try:

@@ -61,8 +61,11 @@ STILL_S = 0.05
 #: The most times a short step is run on for its missing time (:meth:`AirSimDynamics.advance`).
 TOP_UPS = 3
 #: m, how far a drone may read from where it was placed (a simulator that applies a pose late
-#: reads the old one; logged once).
+#: reads the old one: read again for up to ``PLACEMENT_WAIT_S``, then logged once).
 PLACEMENT_TOLERANCE_M = 0.1
+#: s of wall time a placement is read again for (a simulator that applies poses on its next
+#: frame while paused), at most ``timeout_s``.
+PLACEMENT_WAIT_S = 1.0
 
 
 class AirSimDynamics(DroneDynamics):
@@ -148,6 +151,7 @@ class AirSimDynamics(DroneDynamics):
         self.last_advance_s = float("nan")  # sim seconds the last step advanced
         self._ran_short = False  # a step has been run on for time it lacked (logged once)
         self._misplaced = False  # a drone read away from its placement (logged once)
+        self.placement_error_m = 0.0  # m, the farthest a drone read from it at the last reset
 
         # Connect, check the vehicles and the clock, read the spawn points; then pause.
         self.client = AirSimClient(
@@ -280,9 +284,15 @@ class AirSimDynamics(DroneDynamics):
             self.client.take_control(name)
             self.client.set_position(name, world_to_local(world_ned[i], self.spawn[name]).tolist())
         placed = self.position.clone()
-        self._timestamp_ns = self._read("the drones after placing them")
-        off = (self.position - placed).norm(dim=-1)[0]  # (drones,) m
-        if not self._misplaced and bool((off > PLACEMENT_TOLERANCE_M).any()):
+        deadline = time.monotonic() + min(PLACEMENT_WAIT_S, self.client.timeout_s)
+        while True:  # a simulator may apply a pose on its next frame (paused or not)
+            self._timestamp_ns = self._read("the drones after placing them")
+            off = (self.position - placed).norm(dim=-1)[0]  # (drones,) m
+            if not bool((off > PLACEMENT_TOLERANCE_M).any()) or time.monotonic() > deadline:
+                break
+            time.sleep(0.01)
+        self.placement_error_m = float(off.max())
+        if not self._misplaced and self.placement_error_m > PLACEMENT_TOLERANCE_M:
             far = int(off.argmax())
             log.warning("simulator at %s: %s reads %.2f m from where it was placed (the "
                         "simulator applies poses late, or not at all); the episode starts "
