@@ -543,6 +543,22 @@ def test_a_drone_bundle_still_sets_sac_paper_values():
         (["-m", "seed=0,1", "algo.gamma=0.9,2"], "algo.gamma: must be a finite number in [0, 1)"),
         (["hydra.mode=MULTIRUN", "seed=0,-1"], "seed: must be an integer in [0, 4294967295]"),
         (["env.time_limit.x=1"], "env.time_limit.x: no such setting (env.time_limit has none)"),
+        # A group picks one option: Hydra composes a list's on top of each other, fails on null.
+        (
+            ["drone=[attacker_v13,attacker_v1]"],
+            "drone=[attacker_v13,attacker_v1]: a config group "
+            "takes one option (valid: attacker_v1, attacker_v2, ",
+        ),  # fmt: skip
+        (["reward=null"], "reward=null: a config group takes one option (valid: evasion, shaped"),
+        (["+dynamics=[velocity]"], "dynamics=[velocity]: a config group takes one option"),
+        # What reads through a node that the command line replaced or removed names that node.
+        (["env=foo"], "env: must be a mapping, got 'foo' (action.gain reads env.pursuit_gain)"),
+        (["~env"], "env: missing (action.gain reads env.pursuit_gain)"),
+        (["scenario.min_distance=-1"], "scenario.min_distance: must be >= 0 m, got -1.0"),
+        (
+            ["reward.terms=[1,2]"],
+            "Error merging override reward.terms=[1,2]: Cannot merge DictConfig with ListConfig",
+        ),  # fmt: skip
         (["--cfg", "job", "algo.gama=1"], "algo.gama: no such setting"),  # shown, not checked
     ],
 )

@@ -19,7 +19,7 @@ from omegaconf import open_dict
 
 from rlplat.cli import exit_on_error
 from rlplat.errors import ConfigError, RlplatError
-from rlplat.experiment.config import CONF_DIR, compose_config
+from rlplat.experiment.config import CONF_DIR, compose_config, group_options, natural
 from rlplat.io import check_writable_dir
 
 T = TypeVar("T")
@@ -169,7 +169,7 @@ def check_command_line(
     if not multirun:
         jobs = [list(args.overrides)]
     elif any(
-        o.value_type == ValueType.GLOB_CHOICE_SWEEP and _group_options(o.key_or_group) is None
+        o.value_type == ValueType.GLOB_CHOICE_SWEEP and group_options(o.key_or_group) is None
         for o in parsed
     ):
         return  # a glob over a group that is not ours (Hydra's plugins): the sweeper expands it
@@ -276,18 +276,8 @@ def _swept_values(o: Any) -> list[str]:
     from hydra.core.override_parser.types import ValueType
 
     if o.value_type == ValueType.GLOB_CHOICE_SWEEP:
-        return list(o.value().filter(_group_options(o.key_or_group)))
+        return list(o.value().filter(group_options(o.key_or_group)))
     return list(o.sweep_string_iterator())
-
-
-def _group_options(group: str) -> list[str] | None:
-    """The options of a config group of conf/ (its files' names), None for another group
-    (Hydra's own, whose plugins add options: ``hydra/launcher``)."""
-    group = group.lstrip("+")
-    folder = CONF_DIR / group
-    if group.split("/")[0] == "hydra" or not folder.is_dir():
-        return None
-    return sorted(p.stem for p in folder.glob("*.yaml"))
 
 
 def _compose(config_name: str, overrides: list[str]) -> Any:
@@ -301,12 +291,15 @@ def _compose(config_name: str, overrides: list[str]) -> Any:
         if not (e.missing_cfg_file and e.options is not None):
             raise ConfigError(_one_line(str(e))) from None
         group, _, name = e.missing_cfg_file.rpartition("/")
-        options = ", ".join(sorted(e.options, key=_natural))
+        options = ", ".join(sorted(e.options, key=natural))
         raise ConfigError(f"{group}={name}: no such option (valid: {options})") from None
     except HydraException as e:
         cause = e.__cause__
         if isinstance(cause, OmegaConfBaseException) and "not in struct" in str(cause):
             raise ConfigError(_unknown_key(cause)) from None
+        if isinstance(cause, OmegaConfBaseException) and str(cause).strip():  # say why
+            why = str(cause).strip().splitlines()[0]
+            raise ConfigError(f"{_one_line(str(e))}: {why}") from None
         raise ConfigError(_one_line(str(e))) from None
     return cfg
 
@@ -341,8 +334,3 @@ def _one_line(text: str) -> str:
     """Hydra's message in one line: its lines joined, its pointers to the docs dropped."""
     lines = [ln.strip() for ln in str(text).splitlines() if ln.strip()]
     return " ".join(ln for ln in lines if not ln.startswith(("See https://", "Config search path")))
-
-
-def _natural(name: str) -> list[Any]:
-    """Sort key that puts attacker_v2 before attacker_v10."""
-    return [int(p) if p.isdigit() else p for p in re.split(r"(\d+)", name)]

@@ -19,6 +19,7 @@ refused wherever a number is expected.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
@@ -611,8 +612,28 @@ def _resolved(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
     try:
         return OmegaConf.to_container(cfg, resolve=True)
     except OmegaConfBaseException as e:
+        key = getattr(e, "full_key", None) or "config"
         message = str(e).splitlines()[0] if str(e) else type(e).__name__
-        raise ConfigError(f"{getattr(e, 'full_key', None) or 'config'}: {message}") from None
+        raise ConfigError(_broken_reference(cfg, key, message) or f"{key}: {message}") from None
+
+
+def _broken_reference(cfg: DictConfig, key: str, message: str) -> str | None:
+    """For an interpolation that reads through a node the command line removed or replaced
+    (``~env``, ``env=foo``), that node's error rather than the reader's; None otherwise."""
+    found = re.search(r"access ([\w.]+)|key '([\w.]+)'", message)
+    if found is None:
+        return None
+    ref = found.group(1) or found.group(2)
+    parts, node = ref.split("."), cfg
+    for i, part in enumerate(parts[:-1]):
+        here = ".".join(parts[: i + 1])
+        child = node._get_node(part) if isinstance(node, DictConfig) and part in node else None
+        if child is None:
+            return f"{here}: missing ({key} reads {ref})"
+        if not isinstance(child, DictConfig):
+            return f"{here}: must be a mapping, got {show(child._value())} ({key} reads {ref})"
+        node = child
+    return None
 
 
 # Resume -----------------------------------------------------------------------------------

@@ -221,7 +221,9 @@ class ScenarioSpec:
                 f"{where}.vision_semi_axes: must be at most {MAX_MAGNITUDE:g} m, got {list(axes)}"
             )
         min_distance = _finite(raw["min_distance"], f"{where}.min_distance")
-        if min_distance < 0 or min_distance >= max(axes):
+        if min_distance < 0:
+            raise ConfigError(f"{where}.min_distance: must be >= 0 m, got {min_distance}")
+        if min_distance >= max(axes):
             raise ConfigError(
                 f"{where}.min_distance: {min_distance} m cannot be met inside the vision "
                 f"ellipsoid (largest semi-axis {max(axes)} m)"
