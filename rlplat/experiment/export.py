@@ -483,7 +483,7 @@ def export_run(
     check_writable_dir(src.out_dir, "out_dir")
     scenarios = resolve_scenarios(src.cfg, src.scenarios_dir)
     same_set = check_scenarios(scenarios, src.scenario_digest, False, f"recorded with {src.path}")
-    require_scenarios(scenarios, [split], "the export's rollouts")
+    require_scenarios(scenarios, [split], "the export (its rollouts)")
     n = len(scenarios.split(split))
     env = build_eval_env(src.cfg, scenarios=scenarios, split=split, num_envs=n)
     check_policy_fits(src.state, src.cfg, env, src.path, settings="scenarios_dir",
