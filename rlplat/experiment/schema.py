@@ -621,9 +621,9 @@ def _broken_reference(cfg: DictConfig, key: str, message: str) -> str | None:
     """For an interpolation that reads through a node the command line removed or replaced
     (``~env``, ``env=foo``), that node's error rather than the reader's; None otherwise."""
     found = re.search(r"access ([\w.]+)|key '([\w.]+)'", message)
-    if found is None:
+    ref = (found.group(1) or found.group(2)) if found is not None else ""
+    if not ref or ref.startswith("."):  # a relative one names no node from the top
         return None
-    ref = found.group(1) or found.group(2)
     parts, node = ref.split("."), cfg
     for i, part in enumerate(parts[:-1]):
         here = ".".join(parts[: i + 1])
