@@ -606,6 +606,16 @@ def test_an_actor_with_one_action_everywhere_is_exported_with_a_warning(run, tmp
     assert "tests no network" not in caplog.text
 
 
+def test_an_export_on_another_set_warns_in_its_own_words(run, write_set, tmp_path, caplog):
+    other = write_set(tmp_path / "other", "scenario.seed=5")
+    with caplog.at_level(logging.WARNING, logger="rlplat.experiment.evaluation"):
+        card = export_run(run, scenarios_dir=other.path, out_dir=tmp_path / "out", **QUICK)
+    assert f"the set at {other.path} has digest {other.digest[:12]}" in caplog.text
+    assert "; exporting anyway" in caplog.text and "evaluating" not in caplog.text
+    flown = card["equivalence"]["observations"]
+    assert flown["scenario_digest"] == other.digest and flown["scenario_digest_matches"] is False
+
+
 def test_the_shipped_defender_network_exports(scenarios, tmp_path):
     path = shipped_path(SHIPPED_DEFENDER)
     out = tmp_path / "defender"

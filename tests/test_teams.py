@@ -530,7 +530,7 @@ def test_a_team_run_and_a_lone_run_evaluate_on_the_same_defenders(
     # export.py chooses the team by its scenarios_dir alone: the refusal names only that.
     from rlplat.experiment.export import export_run
 
-    only = r"^ckpt: .* with attackers=1, this evaluation flies attackers=2 \(scenarios_dir\)$"
+    only = r"^ckpt: .* with attackers=1, this export flies attackers=2 \(scenarios_dir\)$"
     with pytest.raises(ConfigError, match=only):
         export_run(lone, scenarios_dir=team_sets[2, 1].path, out_dir=tmp_path / "ex")
     assert not (tmp_path / "ex").exists()

@@ -197,6 +197,7 @@ def check_policy_fits(
     *,
     field: str = "ckpt",
     settings: str = "scenarios_dir, attackers, lone_in_team",
+    job: str = "evaluation",
 ) -> list[int] | None:
     """Refuse a checkpoint whose team sizes, network sizes or drone interface differ from the
     env it would fly in (the run's config, on the scenarios and attackers asked for), or
@@ -206,7 +207,7 @@ def check_policy_fits(
     learning role) and the env must fly a team of that role against as many opponents; each
     drone then flies it on its observation's ``lone_features``, which this returns (None
     otherwise). A refusal names ``field`` (where the checkpoint came from) and, for team sizes,
-    the ``settings`` of the command that choose them."""
+    the ``settings`` of the command that choose them, and the ``job`` it would fly in."""
     interface = saved_interface(state)
     interface.pop("route_path", None)
     counts = {"attackers": env.num_attackers, "defenders": env.num_defenders}
@@ -221,7 +222,7 @@ def check_policy_fits(
         if counts[learners] < 2:
             chooses = "scenarios_dir, attackers" if learners == "attackers" else "scenarios_dir"
             raise ConfigError(
-                f"lone_in_team: flies each seat of a team of {learners}, but this evaluation "
+                f"lone_in_team: flies each seat of a team of {learners}, but this {job} "
                 f"flies {learners}={counts[learners]}, no team ({chooses})"
             )
         counts[learners] = 1  # the team's size is checked; each seat flies alone
@@ -233,7 +234,7 @@ def check_policy_fits(
             skip = {"lone_in_team"} | ({"attackers"} if key == "defenders" else set())
             chosen = ", ".join(x for x in settings.split(", ") if x not in skip)
             raise ConfigError(
-                f"{field}: {path} was trained with {key}={saved}, this evaluation flies "
+                f"{field}: {path} was trained with {key}={saved}, this {job} flies "
                 f"{key}={value} ({chosen}{hint})"
             )
     # In-play flags come with more than one defender (caught one by one): a lone defender's
@@ -259,10 +260,14 @@ def check_policy_fits(
 
 
 def check_scenarios(
-    scenarios: ScenarioSet, expected: str | None, strict: bool, source: str
+    scenarios: ScenarioSet,
+    expected: str | None,
+    strict: bool,
+    source: str,
+    doing: str = "evaluating",
 ) -> bool:
     """Whether the set is the one the run trained with (``expected`` digest); a difference is
-    a warning, or an error with ``strict``."""
+    a warning (``doing`` anyway), or an error with ``strict``."""
     if expected is None:
         log.warning("the run records no scenario digest; cannot check the scenario set")
         return False
@@ -274,7 +279,7 @@ def check_scenarios(
     )
     if strict:
         raise ConfigError(message + "; strict_scenarios=true refuses it")
-    log.warning("%s; evaluating anyway", message)
+    log.warning("%s; %s anyway", message, doing)
     return False
 
 

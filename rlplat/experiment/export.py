@@ -482,11 +482,13 @@ def export_run(
         src = run_source(Path(run_dir), ckpt, out_dir, scenarios_dir)
     check_writable_dir(src.out_dir, "out_dir")
     scenarios = resolve_scenarios(src.cfg, src.scenarios_dir)
-    same_set = check_scenarios(scenarios, src.scenario_digest, False, f"recorded with {src.path}")
+    same_set = check_scenarios(
+        scenarios, src.scenario_digest, False, f"recorded with {src.path}", "exporting"
+    )
     require_scenarios(scenarios, [split], "the export (its rollouts)")
     n = len(scenarios.split(split))
     env = build_eval_env(src.cfg, scenarios=scenarios, split=split, num_envs=n)
-    check_policy_fits(src.state, src.cfg, env, src.path, settings="scenarios_dir",
+    check_policy_fits(src.state, src.cfg, env, src.path, settings="scenarios_dir", job="export",
                       field="ckpt" if controller is None else "controller")  # fmt: skip
     actor = DeterministicActor.from_state(src.state)
     actor.layers()  # a layer the C generator does not know fails here
