@@ -289,6 +289,19 @@ def test_bad_train_value_fails_in_one_line(overrides, field, value):
     assert "\n" not in message
 
 
+@pytest.mark.parametrize("observation", ["pursuit_conform", "pursuit_intercept"])
+def test_an_attackers_observation_for_the_defender_reads_alike_in_training_and_make_env(
+    observation, scenarios
+):
+    from rlplat import make_env
+
+    overrides = ("drone=defender_v1", f"observation={observation}")
+    with pytest.raises(ConfigError) as info:
+        make_env(*overrides, scenarios=scenarios, num_envs=2)
+    assert str(info.value) == train_error(*overrides)
+    assert str(info.value).startswith(f"observation: {observation} reads the defender's route")
+
+
 def _numbers(rules):
     return [k for k, r in rules.items() if isinstance(r.rule if isinstance(r, Opt) else r, Num)]
 

@@ -525,7 +525,7 @@ def test_pursuit_conform_refuses_a_bad_route_lag_and_a_defender(scenarios):
         make_env(V11, "+observation.bogus=1", scenarios=scenarios, num_envs=2)
     with pytest.raises(ConfigError, match="observation.team_sight: must be true or false"):
         make_env(V11, "observation.team_sight=3", scenarios=scenarios, num_envs=2)
-    with pytest.raises(ConfigError, match="route conformity is an attacker's"):
+    with pytest.raises(ConfigError, match="^observation: pursuit_conform reads the defender's"):
         make_env("drone=defender_v1", "observation=pursuit_conform", scenarios=scenarios,
                  num_envs=2)  # fmt: skip
     with pytest.raises(ConfigError, match="observation.conformity_time"):

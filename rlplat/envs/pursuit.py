@@ -288,9 +288,13 @@ class PursuitEnv(EnvBase):
             raise ConfigError("action: a guided action flies attackers; this run's learner is "
                               f"the {learner} (valid: velocity)")  # fmt: skip
         self._conforms = bool(getattr(observation, "reads_conformity", False))
-        if self._conforms and learner != "attacker":
-            raise ConfigError("observation: a defender's route conformity is an attacker's; "
-                              f"this run's learner is the {learner}")  # fmt: skip
+        if (self._conforms or getattr(observation, "reads_intercept", False)) and (
+            learner != "attacker"
+        ):  # the route's meeting point or conformity; an action that reads it is guided
+            shown = next((k for k, c in OBSERVATIONS.items() if type(observation) is c),
+                         type(observation).__name__)  # fmt: skip
+            raise ConfigError(f"observation: {shown} reads the defender's route as an attacker "
+                              f"sees it; this run's learner is the {learner}")  # fmt: skip
         # A correction gated on the route deviation reads the one its policy saw.
         self._gated = bool(getattr(action, "gated", False))
         if self._gated and not getattr(observation, "reads_conformity", False):
@@ -301,9 +305,6 @@ class PursuitEnv(EnvBase):
                               f"{shown}")  # fmt: skip
         self._meets = bool(getattr(action, "reads_route", False))  # the guidance's meeting point
         meets = self._meets or getattr(observation, "reads_intercept", False)
-        if meets and learner != "attacker":
-            raise ConfigError("observation/action: the route's meeting point is an attacker's; "
-                              f"this run's learner is the {learner}")  # fmt: skip
         if self._conforms:  # a setpoints defender's mean acceleration per m/s of velocity
             # error over one control period: its velocity follows its command with these lags
             lag = torch.tensor(observation.route_lag, device=self.device)
