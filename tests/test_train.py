@@ -126,6 +126,40 @@ def test_loggers_write_inside_the_run_directory(scenarios, tmp_path, logger, mon
         assert list((tmp_path / "tensorboard").rglob("events.out.tfevents.*"))
 
 
+def _without_a_wandb_login(monkeypatch, home: Path) -> None:
+    for key in ("WANDB_API_KEY", "WANDB_MODE", "WANDB_BASE_URL", "NETRC"):
+        monkeypatch.delenv(key, raising=False)
+    monkeypatch.setenv("HOME", str(home))  # no ~/.netrc, no stored login
+    monkeypatch.setenv("WANDB_CONFIG_DIR", str(home / "wandb-config"))
+
+
+@pytest.mark.parametrize("field", ["logger.mode", "WANDB_MODE"])
+def test_wandb_online_without_a_login_is_one_line_before_the_run_directory(
+    scenarios, tmp_path, monkeypatch, field
+):
+    import subprocess
+    import sys
+
+    from tests.conftest import ROOT
+
+    _without_a_wandb_login(monkeypatch, tmp_path / "home")
+    run = tmp_path / "run"
+    args = ["logger=wandb", f"scenarios_dir={scenarios.path}", f"hydra.run.dir={run}"]
+    if field == "WANDB_MODE":  # where it is set, the mode wandb runs in
+        monkeypatch.setenv("WANDB_MODE", "online")
+    else:
+        args.append("logger.mode=online")
+    res = subprocess.run(  # no terminal: wandb may not ask for the login
+        [sys.executable, str(ROOT / "train.py"), *args],
+        capture_output=True, text=True, cwd=ROOT, stdin=subprocess.DEVNULL, timeout=300,
+    )  # fmt: skip
+    assert res.returncode == 2, res.stderr[-2000:]
+    (line,) = res.stderr.strip().splitlines()
+    assert line.startswith(f"error: {field}: online needs a W&B login on this machine (wandb: ")
+    assert line.endswith(f"; {field}=offline logs without one")
+    assert not run.exists()
+
+
 def test_resume_continues_counters_and_refuses_another_interface(scenarios, tmp_path, tiny_run):
     v4 = "drone=attacker_v4"  # eq. 3: a capture pays 10
     first = tiny_run(scenarios, tmp_path, v4)

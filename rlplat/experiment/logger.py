@@ -29,7 +29,7 @@ def make_logger(
     if backend == "tensorboard":
         return TensorboardLogger(exp_name="tensorboard", log_dir=str(run_dir))
     if backend == "wandb":
-        mode = os.environ.get("WANDB_MODE", node.get("mode", "offline"))
+        mode, _ = wandb_mode(node)
         logger = WandbLogger(
             exp_name=exp_name,
             offline=mode == "offline",  # other modes are read by wandb from WANDB_MODE
@@ -40,6 +40,34 @@ def make_logger(
         logger.log_hparams(config)
         return logger
     raise ConfigError(f"logger.backend: unknown '{backend}'; valid: {', '.join(BACKENDS)}")
+
+
+def wandb_mode(node: Mapping[str, Any]) -> tuple[str, str]:
+    """The mode wandb runs in and the setting that chose it: ``WANDB_MODE`` where it is set,
+    else ``logger.mode``."""
+    if "WANDB_MODE" in os.environ:
+        return os.environ["WANDB_MODE"], "WANDB_MODE"
+    return node.get("mode", "offline"), "logger.mode"
+
+
+def check_logger(node: Mapping[str, Any]) -> None:
+    """Refuse, before any work, a wandb logger set online on a machine without a W&B login:
+    wandb would stop the run at its start, its folder made. Where it may ask (a terminal),
+    wandb asks for the login here."""
+    if node["backend"] != "wandb":
+        return
+    mode, field = wandb_mode(node)
+    if mode != "online":
+        return
+    import wandb
+
+    try:
+        wandb.login(verify=False)  # the credentials on this machine; nothing sent
+    except wandb.errors.UsageError as e:
+        raise ConfigError(
+            f"{field}: online needs a W&B login on this machine (wandb: {e}); "
+            f"{field}=offline logs without one"
+        ) from None
 
 
 class Metrics:

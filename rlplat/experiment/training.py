@@ -60,7 +60,7 @@ from rlplat.experiment.factory import (
     resolve_scenarios,
     with_set_scenario,
 )
-from rlplat.experiment.logger import Metrics, make_logger
+from rlplat.experiment.logger import Metrics, check_logger, make_logger
 from rlplat.experiment.schema import check_resume, validate_train_config
 from rlplat.io import atomic_write_text
 from rlplat.scenarios import SPLITS, STRATEGIES, ScenarioSet
@@ -322,6 +322,7 @@ def checked_start(cfg: DictConfig, run_dir: Path | None, field: str = "hydra.run
     yet) and, with ``resume``, its checkpoint against this config, ``init_from`` and
     ``algo.demonstrations``."""
     validate_train_config(cfg)
+    check_logger(cfg.logger)
     cfg = with_absolute_paths(cfg)  # hydra.job.chdir=true moves the job, not its paths
     scenarios = resolve_scenarios(cfg, cfg.scenarios_dir)
     require_scenarios(scenarios, SPLITS, "training")  # it validates, and tests at its end
