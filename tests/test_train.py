@@ -140,8 +140,7 @@ def test_wandb_online_without_a_login_is_one_line_before_the_run_directory(
     import subprocess
     import sys
 
-    from tests.conftest import ROOT
-
+    root = Path(__file__).resolve().parent.parent
     _without_a_wandb_login(monkeypatch, tmp_path / "home")
     run = tmp_path / "run"
     args = ["logger=wandb", f"scenarios_dir={scenarios.path}", f"hydra.run.dir={run}"]
@@ -150,8 +149,8 @@ def test_wandb_online_without_a_login_is_one_line_before_the_run_directory(
     else:
         args.append("logger.mode=online")
     res = subprocess.run(  # no terminal: wandb may not ask for the login
-        [sys.executable, str(ROOT / "train.py"), *args],
-        capture_output=True, text=True, cwd=ROOT, stdin=subprocess.DEVNULL, timeout=300,
+        [sys.executable, str(root / "train.py"), *args],
+        capture_output=True, text=True, cwd=root, stdin=subprocess.DEVNULL, timeout=300,
     )  # fmt: skip
     assert res.returncode == 2, res.stderr[-2000:]
     (line,) = res.stderr.strip().splitlines()
