@@ -126,13 +126,6 @@ def test_loggers_write_inside_the_run_directory(scenarios, tmp_path, logger, mon
         assert list((tmp_path / "tensorboard").rglob("events.out.tfevents.*"))
 
 
-def _without_a_wandb_login(monkeypatch, home: Path) -> None:
-    for key in ("WANDB_API_KEY", "WANDB_MODE", "WANDB_BASE_URL", "NETRC"):
-        monkeypatch.delenv(key, raising=False)
-    monkeypatch.setenv("HOME", str(home))  # no ~/.netrc, no stored login
-    monkeypatch.setenv("WANDB_CONFIG_DIR", str(home / "wandb-config"))
-
-
 @pytest.mark.parametrize("field", ["logger.mode", "WANDB_MODE"])
 def test_wandb_online_without_a_login_is_one_line_before_the_run_directory(
     scenarios, tmp_path, monkeypatch, field
@@ -141,7 +134,10 @@ def test_wandb_online_without_a_login_is_one_line_before_the_run_directory(
     import sys
 
     root = Path(__file__).resolve().parent.parent
-    _without_a_wandb_login(monkeypatch, tmp_path / "home")
+    for key in ("WANDB_API_KEY", "WANDB_MODE", "WANDB_BASE_URL", "NETRC"):
+        monkeypatch.delenv(key, raising=False)
+    monkeypatch.setenv("HOME", str(tmp_path))  # no ~/.netrc, no stored login
+    monkeypatch.setenv("WANDB_CONFIG_DIR", str(tmp_path / "wandb-config"))
     run = tmp_path / "run"
     args = ["logger=wandb", f"scenarios_dir={scenarios.path}", f"hydra.run.dir={run}"]
     if field == "WANDB_MODE":  # where it is set, the mode wandb runs in
