@@ -255,6 +255,39 @@ def test_integers_bin_strings_and_integer_keys_are_read_and_error_texts_are_one_
     sim.close()
 
 
+def test_a_client_connects_where_no_event_loop_is_set_without_a_warning(server):
+    # Where no asyncio loop was ever set, Python 3.12 and 3.13 warn when asked for the current
+    # one (3.14 refuses): a client makes its thread's own, in the main thread as in any other.
+    script = f"""
+import threading
+from rlplat.envs.airsim.client import AirSimClient
+
+def connect_twice():  # a reconnect in the same thread
+    for _ in range(2):
+        client = AirSimClient({server.address!r}, connect_timeout_s=2.0, timeout_s=1.0)
+        assert client.vehicles() == ["Attacker", "Defender"]
+        client.close()
+
+connect_twice()
+failed = []
+def worker():
+    try:
+        connect_twice()
+    except BaseException as e:
+        failed.append(repr(e))
+thread = threading.Thread(target=worker)
+thread.start()
+thread.join(30)
+assert not failed and not thread.is_alive(), failed
+"""
+    done = subprocess.run(
+        [sys.executable, "-W", "error", "-c", script], cwd=REPO, capture_output=True, text=True,
+        timeout=60,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stderr == ""
+
+
 def test_a_listener_that_hangs_up_before_answering_is_not_called_absent():
     sim = RawSimulator(lambda msgid, method, params: "close")
     with pytest.raises(AirSimError) as info:

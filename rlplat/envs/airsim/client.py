@@ -29,6 +29,7 @@ import json
 import logging
 import math
 import socket
+import threading
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -390,15 +391,21 @@ def _session_types():
     return Session
 
 
+#: The asyncio loop each thread's clients run on, made by the first of them.
+_THREAD_LOOP = threading.local()
+
+
 def _ensure_event_loop() -> None:
-    """The library runs tornado on this thread's asyncio loop: make one where there is none
-    (or only a closed one)."""
-    try:
-        loop = asyncio.get_event_loop_policy().get_event_loop()
-    except RuntimeError:
-        loop = None
+    """The library runs tornado on this thread's current asyncio loop: set this thread's own
+    (made once, again if closed), unless a loop runs here already. Asking asyncio whether one
+    is set would warn where none is (Python 3.12 and 3.13) and fail in 3.14."""
+    with contextlib.suppress(RuntimeError):
+        asyncio.get_running_loop()
+        return
+    loop = getattr(_THREAD_LOOP, "loop", None)
     if loop is None or loop.is_closed():
-        asyncio.set_event_loop(asyncio.new_event_loop())
+        _THREAD_LOOP.loop = loop = asyncio.new_event_loop()
+    asyncio.set_event_loop(loop)
 
 
 class AirSimClient:
