@@ -58,3 +58,14 @@ def check_writable_dir(path: str | os.PathLike, field: str) -> Path:
             f"{field}: cannot write to {path}: {existing} is not writable ({e.strerror})"
         ) from None
     return path
+
+
+def check_writable_file(path: str | os.PathLike, field: str) -> Path:
+    """``path`` as a file that can be written (made, or replaced): not a folder, in a folder
+    that :func:`check_writable_dir` accepts; a one-line :class:`ConfigError` naming ``field``
+    otherwise, before any work."""
+    path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"{field}: cannot write the file {path}: it is a folder")
+    check_writable_dir(path.parent, field)
+    return path

@@ -166,6 +166,38 @@ def test_calibrate_without_a_simulator_is_one_line_naming_the_address(tmp_path, 
         calibrate_command(["altitude=10", f"out={out}"])
 
 
+def test_a_tool_refuses_what_it_cannot_write_or_read_before_any_work(
+    tiny_run_dir, tmp_path, capsys
+):
+    import socket
+
+    with socket.socket() as s:  # nothing listens there: any flight would fail on it first
+        s.bind(("127.0.0.1", 0))
+        nowhere = f"dynamics.endpoints=[127.0.0.1:{s.getsockname()[1]}]"
+    folder = tmp_path / "a_folder"
+    folder.mkdir()
+    cases = [
+        (["settings", "out=/proc/rlplat/s.json"], r"out: cannot write to /proc/rlplat: "),
+        (["settings", f"out={folder}"], rf"out: cannot write the file {folder}: it is a folder$"),
+        (["settings", f"out={tmp_path / 's.json'}", "seed=${nope}"],
+         r"seed: Interpolation key 'nope' not found$"),
+        (["serve", "--port", "0", "--host", "no.such.host.invalid"],
+         r"test server could not listen on no\.such\.host\.invalid:0: "),
+        (["calibrate", nowhere, "out=/proc/rlplat/v.yaml"], r"out: cannot write to /proc/rlplat"),
+        (["calibrate", nowhere, f"out={tmp_path / 'v.yaml'}", "record=/proc/rlplat/r.csv"],
+         r"record: cannot write to /proc/rlplat"),
+        (["sim2sim", f"run_dir={tiny_run_dir}", nowhere, "attackers=abc"],
+         r"attackers: must be an integer >= 1, got 'abc'$"),
+    ]  # fmt: skip
+    for args, message in cases:
+        with pytest.raises(SystemExit) as info:
+            airsim_main(args)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert info.value.code == 2, args
+        assert len(err) == 1 and re.match("error: " + message, err[0]), (args, err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_folder"]  # nothing written
+
+
 # Recordings and replay ----------------------------------------------------------------------
 
 

@@ -22,13 +22,14 @@ from typing import Any
 
 from hydra.errors import HydraException
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from rlplat.envs.airsim import make_settings, ned_to_enu, vehicle_names, write_settings
-from rlplat.envs.airsim.client import parse_endpoint
+from rlplat.envs.airsim.client import AirSimError, parse_endpoint
 from rlplat.errors import ConfigError
 from rlplat.experiment.config import CONF_DIR, compose_config
 from rlplat.experiment.schema import vehicle_list
-from rlplat.io import atomic_write_text
+from rlplat.io import atomic_write_text, check_writable_file
 
 SPAWN_SPACING = 5.0  # m between default spawn points (ten times the contact radius of a quad)
 
@@ -36,10 +37,15 @@ SPAWN_SPACING = 5.0  # m between default spawn points (ten times the contact rad
 def compose_train(overrides: Sequence[str]) -> DictConfig:
     """The train config with command-line ``overrides``; a bad override is a one-line error."""
     try:
-        return compose_config("train", overrides)
+        cfg = compose_config("train", overrides)
     except HydraException as err:
         message = " ".join(str(err).split())
         raise ConfigError(f"overrides {list(overrides)}: {message}") from None
+    try:  # an interpolation that does not resolve is named here, not deep in a verb
+        OmegaConf.to_container(cfg, resolve=True)
+    except OmegaConfBaseException as err:
+        raise ConfigError(f"{err.full_key}: {str(err).splitlines()[0]}") from None
+    return cfg
 
 
 def team_settings(cfg: DictConfig, api_server_port: int | None = None) -> dict[str, Any]:
@@ -102,8 +108,9 @@ def settings_command(args: Sequence[str]) -> str:
     if len(ports) > 1:
         raise ConfigError(f"settings takes at most one port=P, got {ports}")
     port = parse_endpoint(f"127.0.0.1:{ports[0][5:]}", "port")[1] if ports else None
+    out = check_writable_file(outs[0][4:], "out")
     settings = team_settings(compose_train(overrides), api_server_port=port)
-    path = write_settings(Path(outs[0][4:]), settings)
+    path = write_settings(out, settings)
     vehicles = ", ".join(settings["Vehicles"])
     at = f", ApiServerPort {port}" if port is not None else ""
     return f"settings.json for {vehicles} (ClockSpeed {settings['ClockSpeed']:g}{at}) -> {path}"
@@ -119,8 +126,13 @@ def serve_command(args: Sequence[str]) -> int:
     if any(f == "--settings" or f.startswith("--settings=") for f in flags):
         if overrides:
             raise ConfigError(f"serve: overrides {overrides} do not apply with --settings")
-        return main(flags)
-    return main(flags, settings=team_settings(compose_train(overrides)))
+        settings = None
+    else:
+        settings = team_settings(compose_train(overrides))
+    try:
+        return main(flags, settings=settings)
+    except OSError as err:  # a host that does not resolve, a port in use
+        raise AirSimError(str(err)) from None
 
 
 # Options of the verbs ---------------------------------------------------------------------
@@ -211,6 +223,9 @@ def calibrate_command(args: Sequence[str]) -> str:
     out = Path(str(options.get("out", CONF_DIR / "dynamics" / "velocity_calibrated.yaml")))
     if out.suffix != ".yaml":
         raise ConfigError(f"out: a conf/dynamics file ends in .yaml, got {out}")
+    check_writable_file(out, "out")  # both before anything is flown
+    if "record" in options:
+        check_writable_file(str(options["record"]), "record")
     params = cfg.scenario.params
     top = max(params.attacker_max_speed.high, params.defender_max_speed.high)
     default_plan = StepPlan()
@@ -364,6 +379,10 @@ def sim2sim_command(args: Sequence[str]) -> str:
             raise ConfigError(f"reference: cannot parse {reference_overrides}: {err}") from None
         reference = {**reference, **OmegaConf.to_container(patch)}
     attackers = options.get("attackers")
+    if attackers is not None and (
+        isinstance(attackers, bool) or not isinstance(attackers, int) or attackers < 1
+    ):
+        raise ConfigError(f"attackers: must be an integer >= 1, got {attackers!r}")
     result = sim2sim(
         run_dir,
         airsim=airsim,
@@ -372,7 +391,7 @@ def sim2sim_command(args: Sequence[str]) -> str:
         split=str(options.get("split", "test")),
         out_dir=options.get("out"),
         scenarios_dir=options.get("scenarios_dir"),
-        attackers=None if attackers is None else int(attackers),
+        attackers=attackers,
         device=str(options.get("device", "cpu")),
         record=bool(options.get("record", True)),
         command=shlex.join(["python", "-m", "rlplat.airsim", "sim2sim", *args]),
