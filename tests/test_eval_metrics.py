@@ -487,3 +487,28 @@ def test_a_gains_interval_stays_within_what_a_difference_of_fractions_can_be(tmp
     (row,) = paired_rows([tmp_path / "s0"], "proportional_navigation")
     assert row["gain"] == pytest.approx(-0.8)
     assert row["ci95"][0] == -1.0 and row["ci95"][1] < -0.4
+
+
+@pytest.mark.parametrize(
+    "module, argv, message",
+    [
+        ("rlplat.eval.compare", [], "the following arguments are required: run_dir"),
+        ("rlplat.eval.compare", ["x", "--nope"], "unrecognized arguments: --nope"),
+        ("rlplat.eval.aggregate", ["x", "--reps", "many"], "argument --reps: invalid int value"),
+        ("rlplat.eval.pool", [], "the following arguments are required: run_dirs"),
+        ("rlplat.experiment.controller", ["x", "y.pt", "--ckpt", "bset"],
+         "argument --ckpt: invalid choice: 'bset'"),
+        ("rlplat.envs.airsim.testserver", ["--port", "abc"], "argument --port: invalid int"),
+    ],
+)  # fmt: skip
+def test_an_argument_tool_refuses_in_one_line_naming_itself(module, argv, message, capsys):
+    import importlib
+
+    main = importlib.import_module(module).main
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert err[0].startswith("error: python -m ") and message in err[0], err
+    assert err[0].endswith("(see --help)")

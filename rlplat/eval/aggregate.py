@@ -10,7 +10,6 @@ defender's evasion score (beside the capture rate it allows).
 
 from __future__ import annotations
 
-import argparse
 import csv
 import io
 import json
@@ -22,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from rlplat.cli import exit_on_error
+from rlplat.cli import ArgumentParser, exit_on_error
 from rlplat.errors import ConfigError
 from rlplat.eval.metrics import iqm, stratified_bootstrap_ci
 from rlplat.eval.plots import plot_seeds
@@ -217,7 +216,7 @@ def aggregate(sweep_dir: str | Path, reps: int = 2000, seed: int = 0) -> str:
 
 @exit_on_error
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(
+    parser = ArgumentParser(
         prog="python -m rlplat.eval.aggregate", description=__doc__.splitlines()[0]
     )
     parser.add_argument("sweep_dir", help="a sweep directory, e.g. runs/multirun/<time>")

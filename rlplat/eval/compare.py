@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from rlplat.agents.policies import POLICIES
-from rlplat.cli import exit_on_error
+from rlplat.cli import ArgumentParser, exit_on_error
 from rlplat.errors import ConfigError
 from rlplat.eval.plots import plot_comparison
 from rlplat.eval.pool import paired_markdown, paired_rows
@@ -283,7 +283,7 @@ def _paired_section(out: Path, summaries: list[dict[str, Any]], split: str) -> s
 
 @exit_on_error
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(
+    parser = ArgumentParser(
         prog="python -m rlplat.eval.compare", description=__doc__.splitlines()[0]
     )
     parser.add_argument("run_dir", help="a training run directory with eval/<split>-*/ results")

@@ -31,7 +31,6 @@ that three runs meet pooled may still be one that a new seed misses).
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import logging
@@ -42,7 +41,7 @@ from typing import Any
 import numpy as np
 
 from rlplat.agents.policies import POLICIES
-from rlplat.cli import exit_on_error
+from rlplat.cli import ArgumentParser, exit_on_error
 from rlplat.errors import ConfigError
 from rlplat.eval.metrics import speed_ratio_bin, speed_ratio_labels, wilson_interval
 from rlplat.eval.summaries import is_learned, launch_overrides, num, policy_label
@@ -517,9 +516,7 @@ def markdown(rows: list[dict[str, Any]]) -> str:
 
 @exit_on_error
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(
-        prog="python -m rlplat.eval.pool", description=__doc__.splitlines()[0]
-    )
+    parser = ArgumentParser(prog="python -m rlplat.eval.pool", description=__doc__.splitlines()[0])
     parser.add_argument(
         "run_dirs",
         nargs="+",

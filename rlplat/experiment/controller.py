@@ -8,14 +8,13 @@ on the test split.
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 from pathlib import Path
 
 from rlplat.agents.checkpoint import load_checkpoint, save_checkpoint
 from rlplat.agents.policies import policies_for
-from rlplat.cli import exit_on_error
+from rlplat.cli import ArgumentParser, exit_on_error
 from rlplat.errors import ConfigError
 from rlplat.experiment.evaluation import evaluate_run, load_run_config
 from rlplat.io import atomic_write_text, check_writable_dir
@@ -141,7 +140,10 @@ def _is_controller(path: Path) -> bool:
 
 @exit_on_error
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
+    parser = ArgumentParser(
+        prog="python -m rlplat.experiment.controller",
+        description=" ".join(__doc__.split("\n\n")[0].split()),
+    )
     parser.add_argument("run_dir", help="a training run directory")
     parser.add_argument("out", help="the controller file to write (.pt)")
     parser.add_argument("--ckpt", default="best", choices=("best", "last"))

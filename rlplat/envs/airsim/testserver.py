@@ -51,7 +51,6 @@ closes the server, after which a new server can listen on the same port.
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import json
 import logging
@@ -66,7 +65,7 @@ from typing import Any
 
 import msgpack
 
-from rlplat.cli import exit_on_error
+from rlplat.cli import ArgumentParser, exit_on_error
 from rlplat.envs.airsim.settings import effective_clock_speed
 from rlplat.envs.airsim.simworld import Physics, SimWorld, Vehicle
 from rlplat.errors import ConfigError
@@ -707,7 +706,7 @@ def main(argv: Sequence[str] | None = None, settings: Mapping[str, Any] | None =
             the physics constants (``--tau-xy`` ...).
         settings: the settings dict to serve when ``--settings`` is not given.
     """
-    parser = argparse.ArgumentParser(
+    parser = ArgumentParser(
         prog="python -m rlplat.airsim serve",
         description="Loopback AirSim-protocol simulator (protocol conformance, not physics).",
     )
