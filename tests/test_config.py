@@ -573,6 +573,13 @@ def test_a_drone_bundle_still_sets_sac_paper_values():
             "Error merging override reward.terms=[1,2]: Cannot merge DictConfig with ListConfig",
         ),  # fmt: skip
         (["--cfg", "job", "algo.gama=1"], "algo.gama: no such setting"),  # shown, not checked
+        # Hydra's own refusals of its flags: a usage of many lines, or a traceback.
+        (["--nope"], "--nope: not an option of this command; overrides are KEY=VALUE"),
+        (
+            ["seed=1", "--cfg", "job", "algo.gamma=0.9"],
+            "algo.gamma=0.9: the overrides go together, all before or all after the flags",
+        ),
+        (["-m", "seed=0,1", "--cfg", "job"], "--multirun --cfg: one of them at a time"),
     ],
 )
 def test_a_bad_command_line_is_one_line_before_hydra_starts(argv, line):

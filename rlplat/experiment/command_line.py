@@ -116,7 +116,18 @@ def check_command_line(
     from hydra.core.override_parser.types import ValueType
     from hydra.errors import OverrideParseException
 
-    args, _ = get_args_parser().parse_known_args(list(argv))
+    args, unknown = get_args_parser().parse_known_args(list(argv))
+    if unknown:  # Hydra's parser would print its usage, then this
+        raise ConfigError(
+            f"{unknown[0]}: not an option of this command; overrides are KEY=VALUE (see --help)"
+            if unknown[0].startswith("-")
+            else f"{unknown[0]}: the overrides go together, all before or all after the flags"
+        )
+    modes = [flag for flag, on in (("--run", args.run), ("--multirun", args.multirun),
+             ("--cfg", args.cfg), ("--info", args.info),
+             ("--shell-completion", args.shell_completion)) if on]  # fmt: skip
+    if len(modes) > 1:  # Hydra's refusal of these is a traceback
+        raise ConfigError(f"{' '.join(modes)}: one of them at a time (see --help)")
     if any(
         getattr(args, flag, None)
         for flag in (
