@@ -181,6 +181,8 @@ def test_a_tool_refuses_what_it_cannot_write_or_read_before_any_work(
         (["settings", f"out={folder}"], rf"out: cannot write the file {folder}: it is a folder$"),
         (["settings", f"out={tmp_path / 's.json'}", "seed=${nope}"],
          r"seed: Interpolation key 'nope' not found$"),
+        (["settings", f"out={tmp_path / 's.json'}", "scenari=pursuit_2v1"],
+         r"scenari: no such setting \(did you mean scenario or scenarios_dir\?\)$"),
         (["serve", "--port", "0", "--host", "no.such.host.invalid"],
          r"test server could not listen on no\.such\.host\.invalid:0: "),
         (["calibrate", nowhere, "out=/proc/rlplat/v.yaml"], r"out: cannot write to /proc/rlplat"),

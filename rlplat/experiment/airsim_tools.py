@@ -27,6 +27,7 @@ from omegaconf.errors import OmegaConfBaseException
 from rlplat.envs.airsim import make_settings, ned_to_enu, vehicle_names, write_settings
 from rlplat.envs.airsim.client import AirSimError, parse_endpoint
 from rlplat.errors import ConfigError
+from rlplat.experiment.command_line import check_command_line
 from rlplat.experiment.config import CONF_DIR, compose_config
 from rlplat.experiment.schema import vehicle_list
 from rlplat.io import atomic_write_text, check_writable_file
@@ -35,7 +36,9 @@ SPAWN_SPACING = 5.0  # m between default spawn points (ten times the contact rad
 
 
 def compose_train(overrides: Sequence[str]) -> DictConfig:
-    """The train config with command-line ``overrides``; a bad override is a one-line error."""
+    """The train config with command-line ``overrides``; a bad override is a one-line error
+    (as train.py's: the key or option it names, with the nearest valid ones)."""
+    check_command_line("train", list(overrides))
     try:
         cfg = compose_config("train", overrides)
     except HydraException as err:
