@@ -29,6 +29,7 @@ from rlplat.envs.airsim.client import AirSimError, parse_endpoint
 from rlplat.errors import ConfigError
 from rlplat.experiment.command_line import check_command_line
 from rlplat.experiment.config import CONF_DIR, compose_config
+from rlplat.experiment.rules import Num
 from rlplat.experiment.schema import vehicle_list
 from rlplat.io import atomic_write_text, check_writable_file
 
@@ -382,10 +383,9 @@ def sim2sim_command(args: Sequence[str]) -> str:
             raise ConfigError(f"reference: cannot parse {reference_overrides}: {err}") from None
         reference = {**reference, **OmegaConf.to_container(patch)}
     attackers = options.get("attackers")
-    if attackers is not None and (
-        isinstance(attackers, bool) or not isinstance(attackers, int) or attackers < 1
-    ):
-        raise ConfigError(f"attackers: must be an integer >= 1, got {attackers!r}")
+    problem = None if attackers is None else Num(integer=True, ge=1)(attackers)
+    if problem:
+        raise ConfigError(f"attackers: {problem}")
     result = sim2sim(
         run_dir,
         airsim=airsim,
