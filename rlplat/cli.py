@@ -6,6 +6,7 @@ import argparse
 import functools
 import sys
 from collections.abc import Callable
+from pathlib import Path
 from typing import TypeVar
 
 from rlplat.errors import RlplatError
@@ -33,3 +34,16 @@ class ArgumentParser(argparse.ArgumentParser):
 
     def error(self, message: str):
         self.exit(2, f"error: {self.prog}: {message} (see --help)\n")
+
+
+def name_arg(value: str) -> str:
+    """An argument that names something (a folder, a file, a policy): an empty one is refused,
+    not read as the current folder or as no option given."""
+    if not value.strip():
+        raise argparse.ArgumentTypeError(f"must not be empty, got {value!r}")
+    return value
+
+
+def path_arg(value: str) -> Path:
+    """A path argument, refused empty (``Path('')`` is the current folder)."""
+    return Path(name_arg(value))

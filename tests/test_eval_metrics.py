@@ -499,6 +499,14 @@ def test_a_gains_interval_stays_within_what_a_difference_of_fractions_can_be(tmp
         ("rlplat.experiment.controller", ["x", "y.pt", "--ckpt", "bset"],
          "argument --ckpt: invalid choice: 'bset'"),
         ("rlplat.envs.airsim.testserver", ["--port", "abc"], "argument --port: invalid int"),
+        # An empty path is not the current folder, nor an empty option no option.
+        ("rlplat.eval.compare", [""], "argument run_dir: must not be empty, got ''"),
+        ("rlplat.eval.compare", ["x", "--eval-dir", ""], "argument --eval-dir: must not be empty"),
+        ("rlplat.eval.pool", ["x", ""], "argument run_dirs: must not be empty"),
+        ("rlplat.eval.pool", ["x", "--against", " "], "argument --against: must not be empty"),
+        ("rlplat.eval.aggregate", [""], "argument sweep_dir: must not be empty"),
+        ("rlplat.experiment.controller", ["x", ""], "argument out: must not be empty"),
+        ("rlplat.envs.airsim.testserver", ["--settings", ""], "argument --settings: must not be"),
     ],
 )  # fmt: skip
 def test_an_argument_tool_refuses_in_one_line_naming_itself(module, argv, message, capsys):

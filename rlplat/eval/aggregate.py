@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from rlplat.cli import ArgumentParser, exit_on_error
+from rlplat.cli import ArgumentParser, exit_on_error, path_arg
 from rlplat.errors import ConfigError
 from rlplat.eval.metrics import iqm, stratified_bootstrap_ci
 from rlplat.eval.plots import plot_seeds
@@ -219,7 +219,9 @@ def main(argv: list[str] | None = None) -> None:
     parser = ArgumentParser(
         prog="python -m rlplat.eval.aggregate", description=__doc__.splitlines()[0]
     )
-    parser.add_argument("sweep_dir", help="a sweep directory, e.g. runs/multirun/<time>")
+    parser.add_argument(
+        "sweep_dir", type=path_arg, help="a sweep directory, e.g. runs/multirun/<time>"
+    )
     parser.add_argument("--reps", type=int, default=2000, help="bootstrap resamples (2000)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the resampling (0)")
     args = parser.parse_args(argv)

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from rlplat.agents.policies import POLICIES
-from rlplat.cli import ArgumentParser, exit_on_error
+from rlplat.cli import ArgumentParser, exit_on_error, path_arg
 from rlplat.errors import ConfigError
 from rlplat.eval.plots import plot_comparison
 from rlplat.eval.pool import paired_markdown, paired_rows
@@ -286,10 +286,12 @@ def main(argv: list[str] | None = None) -> None:
     parser = ArgumentParser(
         prog="python -m rlplat.eval.compare", description=__doc__.splitlines()[0]
     )
-    parser.add_argument("run_dir", help="a training run directory with eval/<split>-*/ results")
+    parser.add_argument(
+        "run_dir", type=path_arg, help="a training run directory with eval/<split>-*/ results"
+    )
     parser.add_argument("--split", default="test", help="test | val | train (default: test)")
     parser.add_argument(
-        "--eval-dir", default=None,
+        "--eval-dir", default=None, type=path_arg,
         help="the evaluations' folder (evaluate.py compare=true out_dir=...; default RUN_DIR/eval)",
     )  # fmt: skip
     parser.add_argument("--plots", action=argparse.BooleanOptionalAction, default=True,

@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 
 from rlplat.agents.policies import POLICIES
-from rlplat.cli import ArgumentParser, exit_on_error
+from rlplat.cli import ArgumentParser, exit_on_error, name_arg, path_arg
 from rlplat.errors import ConfigError
 from rlplat.eval.metrics import speed_ratio_bin, speed_ratio_labels, wilson_interval
 from rlplat.eval.summaries import is_learned, launch_overrides, num, policy_label
@@ -520,7 +520,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "run_dirs",
         nargs="+",
-        type=Path,
+        type=path_arg,
         help="training run directories (their eval/<split>-*), or evaluation directories "
         "(an evaluate.py out_dir, e.g. of another scenario set)",
     )
@@ -540,6 +540,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--against",
         metavar="POLICY",
+        type=name_arg,
         help="also set every other policy against this one (e.g. proportional_navigation), "
         "scenario by scenario: the gain with its interval, scenarios gained and lost",
     )

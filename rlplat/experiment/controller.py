@@ -14,7 +14,7 @@ from pathlib import Path
 
 from rlplat.agents.checkpoint import load_checkpoint, save_checkpoint
 from rlplat.agents.policies import policies_for
-from rlplat.cli import ArgumentParser, exit_on_error
+from rlplat.cli import ArgumentParser, exit_on_error, path_arg
 from rlplat.errors import ConfigError
 from rlplat.experiment.evaluation import evaluate_run, load_run_config
 from rlplat.io import atomic_write_text, check_writable_dir
@@ -144,8 +144,8 @@ def main(argv: list[str] | None = None) -> None:
         prog="python -m rlplat.experiment.controller",
         description=" ".join(__doc__.split("\n\n")[0].split()),
     )
-    parser.add_argument("run_dir", help="a training run directory")
-    parser.add_argument("out", help="the controller file to write (.pt)")
+    parser.add_argument("run_dir", type=path_arg, help="a training run directory")
+    parser.add_argument("out", type=path_arg, help="the controller file to write (.pt)")
     parser.add_argument("--ckpt", default="best", choices=("best", "last"))
     parser.add_argument(
         "--no-card", action="store_true", help="skip the test-split evaluation (<out>.json)"
