@@ -541,6 +541,20 @@ def test_cli_an_out_dir_that_holds_a_run_is_refused(tmp_path, marker, refused_in
     assert sorted(p.name for p in run.iterdir()) == before
 
 
+@pytest.mark.parametrize("inside", ["checkpoints", "checkpoints/sets/new", "eval"])
+def test_cli_an_out_dir_inside_a_run_is_refused(tmp_path, inside, refused_in_process):
+    # A run's checkpoints/ (or a new folder under it) is no place for a set either.
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "checkpoints" / "best.pt").write_bytes(b"")
+    (run / "config.yaml").write_text("seed: 0\n")
+    before = sorted(p.relative_to(run) for p in run.rglob("*"))
+    out = run / inside
+    stderr = refused_in_process("-m", "rlplat.scenarios", f"out_dir={out}", *SMALL, cwd=tmp_path)
+    assert stderr == f"error: out_dir: {out} lies in the run {run}; give the set its own folder\n"
+    assert sorted(p.relative_to(run) for p in run.rglob("*")) == before
+
+
 def test_cli_an_out_dir_that_cannot_be_made_is_one_line_before_any_work(tmp_path):
     (tmp_path / "a-file").write_text("")
     r = _cli("out_dir=a-file/set", *SMALL, cwd=tmp_path)

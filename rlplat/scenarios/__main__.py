@@ -28,11 +28,23 @@ def spec_of(cfg: DictConfig) -> ScenarioSpec:
         raise ConfigError(
             f"out_dir: {cfg.out_dir} holds a run ({held[0]}); give the set its own folder"
         )
+    run = next((up for up in Path(cfg.out_dir).absolute().parents if _is_run(up)), None)
+    if run is not None:  # e.g. a run's checkpoints/ or eval/ folder
+        raise ConfigError(
+            f"out_dir: {cfg.out_dir} lies in the run {run}; give the set its own folder"
+        )
     try:
         scenario = OmegaConf.to_container(cfg.scenario, resolve=True)
     except OmegaConfBaseException as e:  # an interpolation that does not resolve
         raise ConfigError(f"{e.full_key}: {str(e).splitlines()[0]}") from None
     return ScenarioSpec.from_dict(scenario)
+
+
+def _is_run(folder: Path) -> bool:
+    """Whether ``folder`` is a training run's: its config.yaml beside its checkpoints or summary."""
+    return (folder / "config.yaml").is_file() and (
+        (folder / "checkpoints").is_dir() or (folder / "summary.json").is_file()
+    )
 
 
 @hydra_main("scenarios", spec_of)
