@@ -190,6 +190,15 @@ def test_a_tool_refuses_what_it_cannot_write_or_read_before_any_work(
          r"record: cannot write to /proc/rlplat"),
         (["sim2sim", f"run_dir={tiny_run_dir}", nowhere, "attackers=abc"],
          r"attackers: must be an integer >= 1, got 'abc'$"),
+        # A value no run would take is refused by settings and serve too, not written down.
+        (["settings", f"out={tmp_path / 's.json'}", "algo.gamma=abc"],
+         r"algo\.gamma: must be a finite number in \[0, 1\), got 'abc'$"),
+        (["serve", "--port", "0", "env.control_period=-1"], r"env\.control_period: must be "),
+        # replay names its own rule first, and its out= before it reads anything.
+        (["replay", f"recording={tmp_path / 'r.csv'}", "dynamics=airsim"],
+         r"dynamics: replay flies an embedded model"),
+        (["replay", f"recording={tmp_path / 'r.csv'}", "out=/proc/rlplat/r.csv"],
+         r"out: cannot write to /proc/rlplat"),
     ]  # fmt: skip
     for args, message in cases:
         with pytest.raises(SystemExit) as info:

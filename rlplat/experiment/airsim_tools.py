@@ -52,6 +52,17 @@ def compose_train(overrides: Sequence[str]) -> DictConfig:
     return cfg
 
 
+def compose_team(overrides: Sequence[str]) -> DictConfig:
+    """The train config whose team ``settings`` and ``serve`` write, checked as an env of one
+    env per simulator (a value no run would accept, ``algo.gamma=abc``, is refused here too)."""
+    from rlplat.experiment.schema import validate_train_config
+
+    cfg = compose_train(overrides)
+    airsim = cfg.dynamics.get("name") == "airsim"
+    validate_train_config(cfg, env_batch=len(cfg.dynamics.endpoints) if airsim else 1)
+    return cfg
+
+
 def team_settings(cfg: DictConfig, api_server_port: int | None = None) -> dict[str, Any]:
     """The settings.json dict for the team of ``cfg`` (see the module docstring), with
     ``ApiServerPort`` when ``api_server_port`` is given."""
@@ -113,7 +124,7 @@ def settings_command(args: Sequence[str]) -> str:
         raise ConfigError(f"settings takes at most one port=P, got {ports}")
     port = parse_endpoint(f"127.0.0.1:{ports[0][5:]}", "port")[1] if ports else None
     out = check_writable_file(outs[0][4:], "out")
-    settings = team_settings(compose_train(overrides), api_server_port=port)
+    settings = team_settings(compose_team(overrides), api_server_port=port)
     path = write_settings(out, settings)
     vehicles = ", ".join(settings["Vehicles"])
     at = f", ApiServerPort {port}" if port is not None else ""
@@ -132,7 +143,7 @@ def serve_command(args: Sequence[str]) -> int:
             raise ConfigError(f"serve: overrides {overrides} do not apply with --settings")
         settings = None
     else:
-        settings = team_settings(compose_train(overrides))
+        settings = team_settings(compose_team(overrides))
     try:
         return main(flags, settings=settings)
     except OSError as err:  # a host that does not resolve, a port in use
@@ -319,12 +330,12 @@ def replay_command(args: Sequence[str]) -> str:
     if "recording" not in options:
         raise ConfigError("recording: replay needs recording=FILE (a recording CSV or JSON lines)")
     cfg = compose_train(overrides)
+    if cfg.dynamics.get("name") == "airsim":  # before the schema's rules of an airsim run
+        raise ConfigError("dynamics: replay flies an embedded model (velocity, quadrotor)")
     validate_train_config(cfg)
     node = OmegaConf.to_container(cfg.dynamics, resolve=True)
-    if node["name"] == "airsim":
-        raise ConfigError("dynamics: replay flies an embedded model (velocity, quadrotor)")
     path = Path(str(options["recording"]))
-    out = Path(str(options.get("out", path.with_name(f"{path.stem}.replay.csv"))))
+    out = check_writable_file(options.get("out", path.with_name(f"{path.stem}.replay.csv")), "out")
     episodes = read_recording(path)
     result = replay(
         episodes,
