@@ -394,7 +394,8 @@ def test_progress_counts_the_budget_nearest_its_end(monkeypatch):
     start = time.perf_counter() - 30.0  # a resumed run: 5 % of its time gone
     bar = Progress(node, RunState(frames=250, wall_time_s=30.0), start)
     assert bar.bar.n == 25  # and a quarter of its frames
-    monkeypatch.setattr(training.time, "perf_counter", lambda: start + 420.0)
+    # 420.5 s: (start + 420.0) - start may come back as 419.99999999998 (70 % truncated to 69)
+    monkeypatch.setattr(training.time, "perf_counter", lambda: start + 420.5)
     bar.update(RunState(frames=300), last_val=0.5)
     assert bar.bar.n == 70  # the clock is further along
     bar.update(RunState(frames=2000), last_val=0.5)
