@@ -194,6 +194,8 @@ def test_a_tool_refuses_what_it_cannot_write_or_read_before_any_work(
         (["settings", f"out={tmp_path / 's.json'}", "algo.gamma=abc"],
          r"algo\.gamma: must be a finite number in \[0, 1\), got 'abc'$"),
         (["serve", "--port", "0", "env.control_period=-1"], r"env\.control_period: must be "),
+        (["settings", f"out={tmp_path / 's.json'}", "dynamics=airsim", "dynamics.endpoints=null"],
+         r"dynamics\.endpoints: must be a non-empty list of host:port, got None$"),
         # replay names its own rule first, and its out= before it reads anything.
         (["replay", f"recording={tmp_path / 'r.csv'}", "dynamics=airsim"],
          r"dynamics: replay flies an embedded model"),

@@ -58,8 +58,9 @@ def compose_team(overrides: Sequence[str]) -> DictConfig:
     from rlplat.experiment.schema import validate_train_config
 
     cfg = compose_train(overrides)
-    airsim = cfg.dynamics.get("name") == "airsim"
-    validate_train_config(cfg, env_batch=len(cfg.dynamics.endpoints) if airsim else 1)
+    endpoints = cfg.dynamics.get("endpoints")  # not a list: the schema's rule names it
+    simulators = len(endpoints) if OmegaConf.is_list(endpoints) else 1
+    validate_train_config(cfg, env_batch=simulators if cfg.dynamics.name == "airsim" else 1)
     return cfg
 
 
