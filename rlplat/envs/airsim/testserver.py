@@ -65,7 +65,7 @@ from typing import Any
 
 import msgpack
 
-from rlplat.cli import ArgumentParser, exit_on_error, name_arg, path_arg
+from rlplat.cli import ArgumentParser, exit_on_error, path_arg
 from rlplat.envs.airsim.settings import effective_clock_speed
 from rlplat.envs.airsim.simworld import Physics, SimWorld, Vehicle
 from rlplat.errors import ConfigError
@@ -713,7 +713,7 @@ def main(argv: Sequence[str] | None = None, settings: Mapping[str, Any] | None =
     parser.add_argument(
         "--settings", type=path_arg, required=settings is None, help="settings.json to serve"
     )
-    parser.add_argument("--host", type=name_arg, default="127.0.0.1")
+    parser.add_argument("--host", default="127.0.0.1")
     parser.add_argument("--port", type=int, default=None, help="default: ApiServerPort, 41451")
     parser.add_argument("--clock-speed", type=float, default=None, help="default: ClockSpeed")
     parser.add_argument("--realtime", action="store_true", help="continues take wall time")
