@@ -30,7 +30,7 @@ from rlplat.errors import ConfigError
 from rlplat.experiment.command_line import check_command_line
 from rlplat.experiment.config import CONF_DIR, compose_config
 from rlplat.experiment.rules import Num
-from rlplat.experiment.schema import vehicle_list
+from rlplat.experiment.schema import validate_train_config, vehicle_list
 from rlplat.io import atomic_write_text, check_writable_file
 
 SPAWN_SPACING = 5.0  # m between default spawn points (ten times the contact radius of a quad)
@@ -55,8 +55,6 @@ def compose_train(overrides: Sequence[str]) -> DictConfig:
 def compose_team(overrides: Sequence[str]) -> DictConfig:
     """The train config whose team ``settings`` and ``serve`` write, checked as an env of one
     env per simulator (a value no run would accept, ``algo.gamma=abc``, is refused here too)."""
-    from rlplat.experiment.schema import validate_train_config
-
     cfg = compose_train(overrides)
     endpoints = cfg.dynamics.get("endpoints")  # not a list: the schema's rule names it
     simulators = len(endpoints) if OmegaConf.is_list(endpoints) else 1
@@ -325,7 +323,6 @@ def replay_command(args: Sequence[str]) -> str:
     from rlplat.envs.dynamics import DYNAMICS
     from rlplat.eval.tables import write_csv
     from rlplat.experiment.factory import build_component
-    from rlplat.experiment.schema import validate_train_config
 
     options, overrides, _ = split_options(args, ("recording", "out"))
     if "recording" not in options:
