@@ -10,7 +10,7 @@ $(STAMP): pyproject.toml
 	$(VENV)/bin/pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
-# Main job: train the default attacker (attacker_v13); ARGS passes Hydra overrides.
+# Main job: train the default attacker (attacker_v14); ARGS passes Hydra overrides.
 train: $(STAMP)
 	$(VENV)/bin/python train.py $(ARGS)
 

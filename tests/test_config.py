@@ -108,6 +108,21 @@ def test_attacker_v13_gates_the_law_of_attacker_v12():
     assert (v12.algo.noise_correlation, v13.algo.noise_correlation) == (0.0, 0.98)
 
 
+def test_attacker_v14_is_attacker_v13_heading_off_and_the_default():
+    v13, v14, default = (
+        OmegaConf.to_container(compose_config("train", o), resolve=True)
+        for o in (["drone=attacker_v13"], ["drone=attacker_v14"], [])
+    )
+    assert default == v14 and v14["drone"]["name"] == "attacker_v14"
+    assert (v13["action"]["unreachable"], v14["action"]["unreachable"]) == ("chase", "head_off")
+    # Nothing else differs: the same seed trains attacker_v13 with action.unreachable=head_off.
+    v13["drone"]["name"], v13["action"]["unreachable"] = "attacker_v14", "head_off"
+    assert v13 == v14
+    # The action is the bundle's option, so a group choice still replaces all of it.
+    gated = compose_config("train", ["drone=attacker_v14", "action=route_law_gated"])
+    assert gated.action.unreachable == "chase" and gated.action.gate_high == 2.5
+
+
 @pytest.mark.parametrize(
     "overrides",
     [
@@ -633,7 +648,7 @@ def test_every_job_of_a_sweep_is_checked():
     assert seen == []
     # A glob over one of conf/'s groups: each of its options, as the sweeper expands it.
     check_command_line("train", ["-m", "drone=glob(attacker_v1*)"], seen.append)
-    assert sorted(c.drone.name for c in seen) == [f"attacker_v1{x}" for x in ("", 0, 1, 2, 3)]
+    assert sorted(c.drone.name for c in seen) == [f"attacker_v1{x}" for x in ("", 0, 1, 2, 3, 4)]
 
 
 def test_the_help_of_evaluate_and_export_lists_only_the_groups_they_take(run_python):
