@@ -78,6 +78,7 @@ def test_registries_match_config_groups():
         "attacker_v11",
         "attacker_v12",
         "attacker_v13",
+        "attacker_v14",
         "defender_v1",
     }
 
@@ -110,6 +111,7 @@ def test_a_vision_ellipsoid_set_apart_from_the_sets_is_a_warning(scenarios, capl
         ("attacker_v11", 24),
         ("attacker_v12", 24),
         ("attacker_v13", 24),
+        ("attacker_v14", 24),
     ],
 )
 def test_drone_bundles_pick_their_observation_and_cli_wins(scenarios, drone, dim):

@@ -384,6 +384,9 @@ def _spec():
          "CORRECTION to the route-intercept law", 24),
         ("attacker_v13", "route_law", "a correction to the route-intercept law, gated on the "
          "defender's route deviation", "GATED: the correction is multiplied by", 24),
+        ("attacker_v14", "route_law", "a correction to the route-intercept law, gated on the "
+         "defender's route deviation", "flies to where the route puts the defender at the "
+         "horizon's end and holds.", 24),
     ],
 )  # fmt: skip
 def test_a_guided_controller_exports_with_its_guidance(
@@ -408,8 +411,10 @@ def test_a_guided_controller_exports_with_its_guidance(
     if path is not None:
         assert path["lag"] == 0.9 and path["gain"] == 1.0 and path["acceptance"] == 1.0
         law = action["guidance"]  # attacker_v12's law allows for the attacker's start-up
-        lagged = drone in ("attacker_v12", "attacker_v13")
+        lagged = drone in ("attacker_v12", "attacker_v13", "attacker_v14")
         assert path["start_lag"] == law["start_lag"] == (0.5 if lagged else 0)
+        # attacker_v14's law heads the defender off where no meeting point is reachable
+        assert law["unreachable"] == ("head_off" if drone == "attacker_v14" else "chase")
     conformity = card["interface"].get("route_conformity")  # what the caller keeps per defender
     assert (conformity is not None) == (obs_dim == 24)
     if conformity is not None:
