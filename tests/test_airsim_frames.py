@@ -109,17 +109,25 @@ SETTINGS = {
 }
 
 
-def test_spawn_offsets_read_settings_and_default_to_zero():
-    got = spawn_offsets(SETTINGS, ["Defender", "Attacker"])
-    assert got == {"Defender": (0.0, 4.0, 0.0), "Attacker": (10.0, -2.5, -1.0)}
+def test_spawn_offsets_read_settings_and_a_partial_position_is_the_origin(caplog):
+    # AirSim places a vehicle at its settings' X/Y/Z only when all three are given: the
+    # Defender's Y alone is ignored, it spawns at its PlayerStart, the origin.
+    with caplog.at_level(logging.WARNING, logger="rlplat.envs.airsim.frames"):
+        got = spawn_offsets(SETTINGS, ["Defender", "Attacker"])
+    assert got == {"Defender": (0.0, 0.0, 0.0), "Attacker": (10.0, -2.5, -1.0)}
     assert list(got) == ["Defender", "Attacker"]
+    [record] = caplog.records
+    assert "'Defender'" in record.getMessage() and "no X/Z" in record.getMessage()
+    assert "the origin" in record.getMessage()
 
 
-def test_spawn_offsets_fallback_fills_missing_vehicles_and_coordinates():
-    fallback = {"Defender": (1.0, 2.0, 3.0), "Defender2": (7.0, 8.0, 9.0)}
-    got = spawn_offsets(SETTINGS, ["Defender", "Defender2"], fallback)
-    # Settings win for what they give (Y), the fallback fills the rest.
-    assert got == {"Defender": (1.0, 4.0, 3.0), "Defender2": (7.0, 8.0, 9.0)}
+def test_spawn_offsets_fallback_places_vehicles_the_settings_do_not():
+    fallback = {"Defender": (1.0, 2.0, 3.0), "Defender2": (7.0, 8.0, 9.0),
+                "Attacker": (5.0, 5.0, 5.0)}  # fmt: skip
+    got = spawn_offsets(SETTINGS, ["Defender", "Defender2", "Attacker"], fallback)
+    # A whole position in the settings wins; a partial one or none takes the whole fallback.
+    assert got == {"Defender": (1.0, 2.0, 3.0), "Defender2": (7.0, 8.0, 9.0),
+                   "Attacker": (10.0, -2.5, -1.0)}  # fmt: skip
 
 
 def test_spawn_offsets_of_a_vehicle_the_settings_do_not_place_is_the_origin(caplog):

@@ -159,16 +159,19 @@ def spawn_offsets(
 ) -> dict[str, tuple[float, float, float]]:
     """Spawn point of each named vehicle, NED metres, from a ``settings.json`` dict.
 
-    A vehicle's coordinate is ``Vehicles.<name>.X`` (``Y``, ``Z``) of the settings; one the
-    settings leave out is taken from ``fallback[name]`` when that has the vehicle, else 0. A name
-    that neither the settings nor the fallback has spawns where AirSim puts a vehicle its
-    settings do not place, the origin (its PlayerStart): (0, 0, 0), with a logged warning
-    listing the settings' vehicles (check the vehicles themselves against ``listVehicles``).
+    A vehicle's spawn point is ``Vehicles.<name>.X``, ``Y``, ``Z`` of the settings when they
+    give all three: AirSim places a vehicle at its settings' position only when no coordinate
+    of it is missing (a missing one reads as NaN), and otherwise at its PlayerStart, the
+    origin. A vehicle whose settings give none or only some of them therefore spawns at
+    ``fallback[name]`` when the fallback has it, else at (0, 0, 0), with a logged warning: one
+    that names the coordinates a partial position lacks, or, for a name the settings do not
+    have, one that lists the settings' vehicles (check the vehicles themselves against
+    ``listVehicles``).
 
     Args:
         settings: the parsed settings.json (e.g. ``json.loads`` of ``getSettingsString()``).
         names: the vehicles wanted.
-        fallback: name -> (x, y, z) NED metres, for vehicles or coordinates the settings lack.
+        fallback: name -> (x, y, z) NED metres, for vehicles the settings do not place.
 
     Returns:
         name -> (x, y, z) Python floats, NED metres, in the order of ``names``.
@@ -191,13 +194,23 @@ def spawn_offsets(
             )  # fmt: skip
         if backup is not None and len(backup) != 3:
             raise ConfigError(f"fallback spawn of {name!r} must be (x, y, z), got {backup!r}")
-        coords = []
-        for i, key in enumerate("XYZ"):
-            value = (entry or {}).get(key)
-            if value is None:
-                value = backup[i] if backup is not None else 0.0
-            if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
+        given = {key: (entry or {}).get(key) for key in "XYZ"}
+        for key, value in given.items():
+            if value is not None and (
+                isinstance(value, bool) or not isinstance(value, (int, float, np.number))
+            ):
                 raise ConfigError(f"Vehicles.{name}.{key} must be a number, got {value!r}")
-            coords.append(float(value) + 0.0)
-        out[name] = (coords[0], coords[1], coords[2])
+        missing = [key for key, value in given.items() if value is None]
+        if entry is not None and missing and len(missing) < 3:
+            log.warning(
+                "vehicle %r: its settings give no %s, so AirSim ignores its X/Y/Z and spawns it "
+                "at its PlayerStart; its spawn point is taken as %s",
+                name, "/".join(missing),
+                "the fallback (dynamics.spawn)" if backup is not None else "the origin",
+            )  # fmt: skip
+        if not missing:
+            coords = [given[key] for key in "XYZ"]
+        else:
+            coords = list(backup) if backup is not None else [0.0, 0.0, 0.0]
+        out[name] = tuple(float(value) + 0.0 for value in coords)
     return out
