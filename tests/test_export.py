@@ -517,6 +517,71 @@ def test_the_cards_route_path_formula_is_the_path_the_law_flies(gain):
             assert row == pytest.approx(want, abs=1e-5), t  # float32 lags in route_path
 
 
+def test_the_cards_reachable_rule_is_the_one_the_meeting_point_search_uses():
+    # A host searches the meeting point by the card's rule; a point the attacker's start-up lag
+    # would make "reachable" sooner than now (t < start_lag) is not: max(t - start_lag, 0).
+    from rlplat.envs.kinematics import route_intercept
+    from rlplat.experiment.export import REACHABLE_RULE
+
+    assert "max_speed * max(t - start_lag, 0) + reach_m" in REACHABLE_RULE
+    times = torch.arange(1, 241, dtype=torch.float64) * 0.25  # resolution 0.25 s, 60 s
+    gen = torch.Generator().manual_seed(1)
+    cases = [((1.0, 1.0, 0.5), 4.0, 0.5)]  # 1.5 m away, due at once only without the clamp
+    for _ in range(30):
+        offset = (torch.rand(3, generator=gen, dtype=torch.float64) * 8 - 4).tolist()
+        speed, lag = float(torch.rand((), generator=gen)) * 4 + 0.5, 0.5
+        cases.append((offset, speed, lag))
+    for offset, speed, lag in cases:  # a defender holding still: its path is its position
+        other = torch.tensor([offset], dtype=torch.float64)  # a batch of one
+        _, due, found = route_intercept(
+            torch.zeros(1, 3, dtype=torch.float64), torch.tensor([speed], dtype=torch.float64),
+            other, other.unsqueeze(1).expand(1, 3, 3), torch.ones(1, dtype=torch.float64),
+            times=times, lag=lag, reach=1.2,
+        )  # fmt: skip
+        gap = max(abs(x) for x in offset)
+        want = next((t for t in times.tolist() if gap <= speed * max(t - lag, 0.0) + 1.2), None)
+        assert bool(found) == (want is not None) and (want is None or float(due) == want)
+
+
+def _pn_from_the_card(r, u, speed, gain, lead, max_lead_time):
+    """The card's pn formula, step by step in plain Python, one attacker."""
+    closing = [speed - math.copysign(1.0, r[k]) * u[k] if r[k] else speed for k in range(3)]
+    t_i = [abs(r[k]) / closing[k] if closing[k] > 1e-6 else max_lead_time for k in range(3)]
+    t_go = min(max(t_i), max_lead_time)
+    return [min(max(gain * (r[k] + lead * u[k] * t_go) / speed, -1.0), 1.0) for k in range(3)]
+
+
+@pytest.mark.parametrize("unreachable", ["chase", "head_off"])
+def test_the_cards_law_formulas_are_the_law_the_env_flies(unreachable):
+    # A host builds the velocity command from the card: the law's formula, followed as worded,
+    # gives the guidance the env adds the correction to (route law and its pn homing).
+    from rlplat.envs.components import RouteLawAction
+
+    law = RouteLawAction(homing_time=0.5, start_lag=0.5, unreachable=unreachable)
+    words = law.card()["guidance"]["formula"]
+    assert "law = clamp(gain * m / V, -1, 1) per axis" in words
+    assert "t_i = |r_i| / (V - sign(r_i) * u_i)" in words and "world frame" in words
+    assert ("wherever none is" in words) == (unreachable == "chase")
+    gen = torch.Generator().manual_seed(2)
+    n = 400
+    rel = torch.rand(n, 3, generator=gen) * 60 - 30
+    rel[:20, 1] = 0.0  # an axis already closed
+    v_other = torch.rand(n, 3, generator=gen) * 8 - 4
+    speed = torch.rand(n, generator=gen) * 4 + 0.5
+    aim = torch.rand(n, 3, generator=gen) * 60 - 30
+    due = torch.rand(n, generator=gen) * 2  # across homing_time
+    reachable = torch.rand(n, generator=gen) > 0.3
+    got = law.guidance(rel, v_other, speed, meeting=(aim, due, reachable))
+    for i in range(n):
+        pn = _pn_from_the_card(rel[i].tolist(), v_other[i].tolist(), float(speed[i]),
+                               law.gain, law.lead, law.max_lead_time)  # fmt: skip
+        homes = float(due[i]) <= law.homing_time or (
+            unreachable == "chase" and not bool(reachable[i])
+        )
+        fly_to = [min(max(law.gain * a / float(speed[i]), -1.0), 1.0) for a in aim[i].tolist()]
+        assert got[i].tolist() == pytest.approx(pn if homes else fly_to, abs=1e-5), i
+
+
 def test_implementations_that_differ_fail_the_export_and_write_nothing(run, tmp_path):
     with pytest.raises(ExportError) as e:
         export_run(run, out_dir=tmp_path / "out", tolerance=1e-12, **QUICK)

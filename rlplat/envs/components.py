@@ -6,6 +6,7 @@ by the drones of a team), M for the opponents a drone sees and K for its team-ma
 
 from __future__ import annotations
 
+import textwrap
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -625,11 +626,31 @@ class GuidedVelocityAction(VelocityAction):
         """The guidance law under the action, for the card."""
         return {
             "law": "proportional_navigation (rlplat.envs.kinematics.intercept_action)",
+            "formula": self.pn_formula(),
             "gain": self.gain,
             "lead": self.lead,
             "max_lead_time": self.max_lead_time,
             "accel_lead": self.accel_lead,
         }
+
+    def pn_formula(self, accel: bool = True) -> str:
+        """Proportional navigation as the card and header state it, for a host to compute;
+        ``accel``: with this action's acceleration lead (the route law homes without one)."""
+        lead = accel and self._accel_term() is not None
+        u = (
+            "u = v + accel_lead * a, v the defender's velocity and a its mean "
+            "acceleration over the last control period (m/s, m/s^2; world frame, not relative "
+            "to the attacker)"
+            if lead
+            else "u the defender's velocity (m/s, world frame, not relative to the attacker)"
+        )
+        return (
+            "pn = clamp(gain * (r + lead * u * t_go) / V, -1, 1) per axis: r the nearest "
+            "defender's position minus the attacker's (m), "
+            f"{u}, V the attacker's maximum speed per axis; t_go = min(max over the axes of "
+            "t_i, max_lead_time), t_i = |r_i| / (V - sign(r_i) * u_i) where that closing speed "
+            "exceeds 1e-6 m/s, else max_lead_time"
+        )
 
     def describe(self) -> list[str]:
         """The same for a C header's comment."""
@@ -639,6 +660,7 @@ class GuidedVelocityAction(VelocityAction):
             f"pn the law's action (gain {self.gain:g}/s, lead {self.lead:g}, max lead time "
             f"{self.max_lead_time:g} s; rlplat.envs.kinematics.intercept_action).",
             *self._describe_accel(),
+            *textwrap.wrap(self.pn_formula() + ".", 78),
         ]
 
     def _accel_term(self) -> str | None:
@@ -823,10 +845,30 @@ class RouteLawAction(GuidedVelocityAction):
                                         "unreachable_opens": self.gate_unreachable}  # fmt: skip
         return card
 
+    def route_formula(self) -> str:
+        """The route-intercept law as the card and header state it, for a host to compute."""
+        if self.unreachable == "chase":
+            until, rest = " and the point is reachable", "; pn from then on and wherever none is"
+        else:
+            until = ""
+            rest = (
+                "; pn from then on. Where none is reachable it flies to route_path's unreachable "
+                "point all the same and holds there"
+            )
+        return (
+            "law = clamp(gain * m / V, -1, 1) per axis, m the meeting point relative to the "
+            "attacker (route_path; the observation's intercept - p_own where it has one), V its "
+            "maximum speed per axis, "
+            f"while the defender is due there later than homing_time s (t_intercept > "
+            f"homing_time){until}{rest}. A null horizon is the episode's time limit "
+            f"(route_path's horizon, s). {self.pn_formula(accel=False)}"
+        )
+
     def _law_card(self) -> dict[str, Any]:
         return {
             "law": "route_intercept (rlplat.envs.kinematics.route_law), proportional navigation "
             "when homing (rlplat.envs.kinematics.intercept_action)",
+            "formula": self.route_formula(),
             "gain": self.gain,
             "lead": self.lead,
             "max_lead_time": self.max_lead_time,
@@ -850,6 +892,7 @@ class RouteLawAction(GuidedVelocityAction):
             "chases with proportional navigation."
             if self.unreachable == "chase"
             else "flies to where the route puts the defender at the horizon's end and holds.",
+            *textwrap.wrap(self.route_formula() + ".", 78),
             *(
                 [
                     "GATED: the correction is multiplied by clamp((d - "

@@ -299,6 +299,15 @@ ROUTE_PATH_FORMULA = (
 )
 
 
+#: How the meeting point's search decides that a point of the path is reachable
+#: (rlplat.envs.kinematics.route_intercept), as the card words it.
+REACHABLE_RULE = (
+    "a point at time t counts when the attacker's largest per-axis gap to it is at most "
+    "max_speed * max(t - start_lag, 0) + reach_m; t runs over resolution_s, 2 * resolution_s, "
+    "... up to the horizon, and the first that counts is the meeting point"
+)
+
+
 def host_models(env) -> dict[str, dict[str, Any]]:
     """What the caller computes itself for the observation and the law, with its numbers: the
     meeting point's route path and the route conformity features (none for other drones)."""
@@ -315,10 +324,7 @@ def host_models(env) -> dict[str, dict[str, Any]]:
             "horizon": env.meeting_horizon,  # the seconds searched (a null setting: the limit)
             "resolution_s": ROUTE_RESOLUTION,  # the instants tried: every resolution_s s
             "reach_m": env.capture_radius,  # a point within this of the attacker's reach counts
-            "reachable": "a point at time t counts when the attacker's largest per-axis gap to "
-            "it is at most max_speed * (t - start_lag) + reach_m; t runs over resolution_s, "
-            "2 * resolution_s, ... up to the horizon, and the first that counts is the meeting "
-            "point",
+            "reachable": REACHABLE_RULE,
             "unreachable": "where no instant counts, the point is the path's at the horizon "
             "(the route's end if it gets there sooner), its time the horizon, reachable 0",
             "defender": "each attacker's nearest defender not yet caught (by distance); its "
@@ -331,8 +337,14 @@ def host_models(env) -> dict[str, dict[str, Any]]:
             "a the defender's mean acceleration over the last control period dt, v its velocity "
             "and c its setpoint follower's command (rlplat.envs.kinematics.follow_route) at the "
             "period's start (0 from the step after its capture); route_deviation += "
-            "(|route_residual| - route_deviation) * (1 - exp(-dt / conformity_time)), 0 at the "
-            "episode's start",
+            "(||route_residual|| - route_deviation) * (1 - exp(-dt / conformity_time)), "
+            "||.|| the Euclidean norm over the three axes; both 0 at the episode's start",
+            "command": "c = clamp(setpoint_gain * (s - p), -V, V) per axis, p the defender's "
+            "position, V its maximum speed per axis and s its current setpoint; c = 0 once its "
+            "route is done. It moves on to the next setpoint when, after a step, it is within "
+            "acceptance m of s (Euclidean distance); past the route's end the setpoint and the "
+            "next one are its last setpoint",
+            "acceptance": env.setpoint_acceptance,
             "route_lag": list(env.obs_fn.route_lag),
             "conformity_time": env.obs_fn.conformity_time,
             "control_period": env.control_period,
