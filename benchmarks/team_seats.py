@@ -23,6 +23,24 @@ whole split:
   side it flies towards) until within D m (``benchmarks/guidance_laws.py --offsets``), the
   other seats the checkpoint.
 
+Team rules, each seat reading its team-mate's position from the team's observation (a
+2-vs-1 set; the checkpoint flies every seat):
+
+- ``apart:R:K``: each seat's command is pushed horizontally away from its team-mate, by
+  ``K * (1 - s / R)`` times its maximum speed at a separation of s < R m (spacing);
+- ``spread:A:K:D``: where the two seats see the defender within A degrees of each other
+  (horizontally), each is pushed square to its line of sight, away from its team-mate, by up
+  to K times its maximum speed (all of it where the bearings coincide, none at A), scaled
+  down to none within D m of the defender (all of it from 2D): they come at it from apart;
+- ``far-wait:D``: the seat farther from the defender flies, without a correction, to the
+  defender's current setpoint of its route and waits there, until it is within D m of the
+  defender; then the checkpoint (an ambush where the route takes the defender).
+
+The pushes are added to the action (a correction of the law in units of ``action.scale``
+times the maximum speed) and clipped to its bounds, so the route gate of ``attacker_v13``
+and later applies to them as to the correction: they act where the defender leaves its
+route.
+
 Prints the capture rate of each variant, of the route flyers and of the network defenders.
 
     .venv/bin/python benchmarks/team_seats.py RUN_DIR --scenarios data/scenarios/pursuit2v1 \\
@@ -33,6 +51,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 from pathlib import Path
 
 import torch
@@ -63,9 +82,14 @@ class SeatVariant(TensorDictModuleBase):
     as ``variant`` says; ``position`` is the slice of a seat's observation that holds the
     first defender's position relative to it (its distance decides the scale)."""
 
-    def __init__(self, actor, variant: str, obs_key, action_key, position: slice) -> None:
+    def __init__(self, actor, variant: str, obs_key, action_key, position: slice,
+                 mate: slice | None = None, scale: float = 1.0) -> None:  # fmt: skip
         super().__init__()
         self.actor, self.variant, self.position = actor, variant, position
+        self.mate, self.action_scale = mate, scale  # the team-mate's relative position
+        kind, *numbers = variant.split(":")
+        self.rule = (kind, tuple(float(x) for x in numbers)) if kind in TEAM_RULES else None
+        self.wait = float(numbers[0]) if kind == "far-wait" else None
         # near:D1:D2, read once (check_variant has checked it)
         self.gate = tuple(float(x) for x in variant.split(":")[1:]) if ":" in variant else None
         self.home = variant.startswith("home:")
@@ -78,6 +102,12 @@ class SeatVariant(TensorDictModuleBase):
         action = td.get(self.action_key)
         distance = td.get(self.obs_key)[..., self.position].norm(dim=-1)  # (*B, seats)
         nearest = nearest_seat(distance)
+        if self.rule is not None:  # apart, spread: a push added to the action
+            obs = td.get(self.obs_key)
+            push = team_push(self.rule, obs[..., self.position], obs[..., self.mate])
+            action = (action + push / self.action_scale).clamp(-1.0, 1.0)
+            td.set(self.action_key, action)
+            return td
         if self.variant == "policy":
             scale = torch.ones_like(distance)
         elif self.variant == "law":
@@ -88,6 +118,8 @@ class SeatVariant(TensorDictModuleBase):
             scale = (~nearest).to(distance.dtype)
         elif self.offset is not None:  # the offset seat flies its law (seat_offset)
             scale = (nearest if self.offset == "far-offset" else ~nearest).to(distance.dtype)
+        elif self.wait is not None:  # far-wait:D, the waiting seat flies its law (seat_wait)
+            scale = (nearest | (distance <= self.wait)).to(distance.dtype)
         elif self.home:  # home:R, the law's homing within R (seat_home)
             scale = (distance >= self.gate[0]).to(distance.dtype)
         else:  # near:D1:D2
@@ -95,6 +127,57 @@ class SeatVariant(TensorDictModuleBase):
             scale = ((high - distance) / (high - low)).clamp(0.0, 1.0)
         td.set(self.action_key, action * scale.unsqueeze(-1))
         return td
+
+
+#: The team rules that push each seat's command (``team_push``).
+TEAM_RULES = ("apart", "spread")
+
+
+def team_push(rule: tuple[str, tuple[float, ...]], rel: torch.Tensor, mate: torch.Tensor):
+    """(*B, seats, 3) the push of a team rule, in units of the maximum speed, for seats whose
+    defender is at ``rel`` and team-mate at ``mate`` (*B, seats, 3) m relative to them;
+    horizontal, so that no rule flies a seat into the ground."""
+    kind, numbers = rule
+    rel, mate = rel[..., :2], mate[..., :2]
+    own_to_mate = mate.norm(dim=-1, keepdim=True)
+    if kind == "apart":
+        radius, gain = numbers
+        weight = gain * (1.0 - own_to_mate / radius).clamp_min(0.0)
+        direction = -mate / own_to_mate.clamp_min(1e-6)
+    else:  # spread
+        angle, gain, near = numbers
+        cos_a = math.cos(math.radians(angle))
+        sight = rel / rel.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+        mate_rel = rel - mate  # the defender relative to the team-mate
+        mate_sight = mate_rel / mate_rel.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+        aligned = ((sight * mate_sight).sum(-1, keepdim=True) - cos_a) / (1.0 - cos_a)
+        distance = rel.norm(dim=-1, keepdim=True)
+        weight = gain * aligned.clamp(0.0, 1.0) * ((distance - near) / near).clamp(0.0, 1.0)
+        away = -mate - (-mate * sight).sum(-1, keepdim=True) * sight  # square to the sight line
+        direction = away / away.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+    push = weight * direction
+    return torch.cat([push, torch.zeros_like(push[..., :1])], -1)
+
+
+def seat_wait(env, within: float):
+    """The action's guidance (``action_fn.guidance``'s signature) that, in the seat farther
+    from its defender and farther than ``within`` m from it, flies to that defender's current
+    setpoint (the law's gain per metre, clipped to the maximum speed per axis), and the
+    action's own law in the others. Read from ``env`` (a 2-vs-1 env: one defender)."""
+    action_fn = env.action_fn
+    law = type(action_fn)
+
+    def guidance(rel, v_other, max_speed, a_other=None, meeting=None):
+        flown = law.guidance(action_fn, rel, v_other, max_speed, a_other, meeting)
+        own = env.dynamics.position[:, env.attackers]
+        setpoint = env._target()[0][:, :1].expand_as(own)
+        speed = max_speed.unsqueeze(-1).clamp_min(1e-6)
+        wait = (action_fn.gain * (setpoint - own) / speed).clamp(-1.0, 1.0)
+        distance = rel.norm(dim=-1)
+        waits = ~nearest_seat(distance) & (distance > within)
+        return torch.where(waits.unsqueeze(-1), wait, flown)
+
+    return guidance
 
 
 def seat_unreachable(action_fn, seats: str):
@@ -162,6 +245,23 @@ def check_variant(variant: str) -> str:
                 f"variant: {parts[0]}:R:D with finite R, D > 0 m, got {variant!r}"
             )
         return variant
+    rule = {"apart": ("R:K", 2), "spread": ("A:K:D", 3), "far-wait": ("D", 1)}.get(parts[0])
+    if rule is not None:
+        shape, count = rule
+        try:
+            numbers = [float(x) for x in parts[1:]]
+        except ValueError:
+            numbers = []
+        if (
+            len(numbers) != count
+            or not all(0 < x < float("inf") for x in numbers)
+            or (parts[0] == "spread" and not numbers[0] < 180)
+        ):
+            raise argparse.ArgumentTypeError(
+                f"variant: {parts[0]}:{shape} with finite numbers > 0"
+                f"{' (A < 180 degrees)' if parts[0] == 'spread' else ''}, got {variant!r}"
+            )
+        return variant
     if parts[0] == "home":
         try:
             radius = float(parts[1]) if len(parts) == 2 else float("nan")
@@ -177,7 +277,7 @@ def check_variant(variant: str) -> str:
     if parts[0] != "near" or len(parts) != 3 or not 0 <= low < high:
         raise argparse.ArgumentTypeError(
             f"variant: policy, law, far-law, near-law, {', '.join(HEAD_OFF)}, home:R, "
-            "far-offset:R:D, near-offset:R:D or "
+            "far-offset:R:D, near-offset:R:D, apart:R:K, spread:A:K:D, far-wait:D or "
             f"near:D1:D2 with 0 <= D1 < D2, got {variant!r}"
         )
     return variant
@@ -217,6 +317,13 @@ def main() -> None:
     if "(p_opponent0 - p_own).x" not in names:
         raise SystemExit(f"team_seats: observation={cfg.observation.name} has no relative position")
     at = names.index("(p_opponent0 - p_own).x")
+    team_rules = [v for v in args.variants if v.split(":")[0] in (*TEAM_RULES, "far-wait")]
+    if team_rules and "(p_mate0 - p_own).x" not in names:
+        raise SystemExit(
+            f"team_seats: {', '.join(team_rules)} need a team (a team-mate's position in the "
+            f"observation), got {env.num_attackers} attacker(s)"
+        )
+    mate = names.index("(p_mate0 - p_own).x") if team_rules else at
     actor = actor_from_state(state, env.drone_action_spec, "cpu", env.group, features)
     network = scenarios.split(args.split)["defender_strategy"][:, 0] == STRATEGIES.index("nn")
 
@@ -234,12 +341,15 @@ def main() -> None:
         else:
             if variant.startswith("home:"):
                 env.action_fn.guidance = seat_home(env.action_fn, float(variant.split(":")[1]))
+            if variant.startswith("far-wait:"):
+                env.action_fn.guidance = seat_wait(env, float(variant.split(":")[1]))
             if "-offset:" in variant:
                 seat, offset, within = variant.split(":")
                 env.action_fn.guidance = seat_offset(env.action_fn, seat.split("-")[0],
                                                      float(offset), float(within))  # fmt: skip
             module = SeatVariant(actor, variant, observation_key(env.group), env.action_key,
-                                 slice(at, at + 3))  # fmt: skip
+                                 slice(at, at + 3), slice(mate, mate + 3),
+                                 env.action_fn.scale)  # fmt: skip
             results = evaluate(env, module)
             env.action_fn.__dict__.pop("guidance", None)  # the class's again
         captured = results.captured  # one row per scenario of the split, in order
