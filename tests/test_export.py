@@ -526,7 +526,7 @@ def test_the_cards_reachable_rule_is_the_one_the_meeting_point_search_uses():
     assert "max_speed * max(t - start_lag, 0) + reach_m" in REACHABLE_RULE
     times = torch.arange(1, 241, dtype=torch.float64) * 0.25  # resolution 0.25 s, 60 s
     gen = torch.Generator().manual_seed(1)
-    cases = [((1.0, 1.0, 0.5), 4.0, 0.5)]  # 1.5 m away, due at once only without the clamp
+    cases = [((1.0, 1.0, 0.5), 4.0, 0.5)]  # 1.5 m away: due at 0.25 s; t - start_lag says 0.5
     for _ in range(30):
         offset = (torch.rand(3, generator=gen, dtype=torch.float64) * 8 - 4).tolist()
         speed, lag = float(torch.rand((), generator=gen)) * 4 + 0.5, 0.5
