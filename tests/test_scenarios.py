@@ -1,5 +1,6 @@
 import dataclasses
 import json
+import logging
 import math
 import re
 import subprocess
@@ -144,6 +145,53 @@ def test_quality_report_asks_only_for_bins_that_hold_a_grid_value(make_spec):
     )  # fmt: skip
     missing = speed_bins(quality_report(spec, splits)["completeness"])
     assert missing == ["val: attacker_max_speed bin [3.09, 3.1]"]
+
+
+def test_quality_report_asks_a_gaussian_only_for_the_bins_its_draws_reach(make_spec):
+    # Attacker speeds gaussian at 3.0 +- 0.2 m/s on [1, 5]: the bins 5 to 10 std from the mean
+    # expect no draw in a split of this size and are not asked for (they made every such set
+    # INCOMPLETE); a bin the split would fill is still reported when it holds no scenario.
+    from rlplat.scenarios import quality_report
+
+    narrow = ("dist=gaussian", "mean=3.0", "std=0.2")
+    spec = make_spec("scenario.n_train=400", "scenario.n_val=200", "scenario.n_test=200",
+                     *(f"scenario.params.attacker_max_speed.{x}" for x in narrow))  # fmt: skip
+    splits = generate(spec)
+
+    def speed_bins(comp):
+        return [m for m in comp["missing"] if "attacker_max_speed" in m]
+
+    assert speed_bins(quality_report(spec, splits)["completeness"]) == []
+    i = spec.param_names.index("attacker_max_speed")
+    val = splits["val"]
+    keep = (val.values[:, i] < 2.6) | (val.values[:, i] >= 3.0)  # empty the bin [2.6, 3.0)
+    splits["val"] = dataclasses.replace(
+        val, ids=[x for x, k in zip(val.ids, keep, strict=True) if k],
+        values=val.values[keep], route=val.route[keep], strategy=val.strategy[keep],
+    )  # fmt: skip
+    assert speed_bins(quality_report(spec, splits)["completeness"]) == [
+        "val: attacker_max_speed bin [2.6, 3]"
+    ]
+
+
+def test_a_gaussian_drawn_mostly_outside_its_range_is_logged(make_spec, caplog):
+    # Draws outside [low, high] land on the ends; the quality report cannot show it, the
+    # generator says so (and nothing for a gaussian that stays inside).
+    wide = ("dist=gaussian", "mean=2.0", "std=10")
+    spec = make_spec("scenario.n_train=40", "scenario.n_val=10", "scenario.n_test=10",
+                     *(f"scenario.params.attacker_max_speed.{x}" for x in wide))  # fmt: skip
+    with caplog.at_level(logging.WARNING, logger="rlplat.scenarios.generator"):
+        generate(spec)
+    [record] = caplog.records
+    assert record.getMessage().startswith("scenario.params.attacker_max_speed: the gaussian")
+    assert "46 % of its draws below low 1 and 38 % above high 5" in record.getMessage()
+    caplog.clear()
+    narrow = ("dist=gaussian", "mean=3.0", "std=0.8")
+    spec = make_spec("scenario.n_train=40", "scenario.n_val=10", "scenario.n_test=10",
+                     *(f"scenario.params.attacker_max_speed.{x}" for x in narrow))  # fmt: skip
+    with caplog.at_level(logging.WARNING, logger="rlplat.scenarios.generator"):
+        generate(spec)
+    assert not caplog.records
 
 
 def test_a_resolution_of_the_whole_range_draws_both_ends(make_spec):

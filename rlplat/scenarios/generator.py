@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import re
 from dataclasses import dataclass
 from itertools import combinations
@@ -222,8 +223,27 @@ def _stratified_labels(spec: ScenarioSpec, strata: np.ndarray, rng: np.random.Ge
     return labels
 
 
+def _warn_clipped(spec: ScenarioSpec, share: float = 0.05) -> None:
+    """Log each gaussian parameter that draws more than ``share`` of its values outside
+    [low, high]: those are drawn at the ends, which the quality report does not show."""
+    for name, p in zip(spec.param_names, spec.param_specs, strict=True):
+        if p.dist != "gaussian":
+            continue
+        below, above = (
+            0.5 * (1.0 + math.erf(sign * (x - p.mean) / (p.std * math.sqrt(2.0))))
+            for sign, x in ((1.0, p.low), (-1.0, p.high))
+        )
+        if below + above > share:
+            log.warning(
+                "scenario.params.%s: the gaussian (mean %g, std %g) puts %.0f %% of its draws "
+                "below low %g and %.0f %% above high %g; they are drawn at low and high",
+                name, p.mean, p.std, 100 * below, p.low, 100 * above, p.high,
+            )  # fmt: skip
+
+
 def generate(spec: ScenarioSpec) -> dict[str, SplitColumns]:
     """Generate the train/val/test splits of ``spec`` (deterministic in ``spec.seed``)."""
+    _warn_clipped(spec)
     rng = np.random.default_rng(spec.seed)
     keys = _distinct_feasible(spec, rng)
     n_cont = len(spec.param_names)

@@ -75,11 +75,26 @@ def _completeness(spec: ScenarioSpec, splits: dict[str, SplitColumns]) -> dict[s
             if reach is not None:  # an offset beyond the vision ellipsoid is never drawn
                 values = values[np.abs(values) <= reach]
             grid, _ = np.histogram(values, bins=edges)
-            for b in np.flatnonzero((counts == 0) & (grid > 0)):
+            likely = _expected_draws(p, edges, len(cols)) >= 1.0
+            for b in np.flatnonzero((counts == 0) & (grid > 0) & likely):
                 step = min(p.resolution, edges[1] - edges[0])
                 low, high = (_edge(x, step) for x in edges[b : b + 2])
                 missing.append(f"{split}: {name} bin [{low}, {high}]")
     return {"complete": not missing, "bins": spec.quality_bins, "missing": missing}
+
+
+def _expected_draws(p, edges: np.ndarray, n: int) -> np.ndarray:
+    """How many of ``n`` draws of parameter ``p`` each bin (``edges``) expects: a uniform
+    parameter's every bin is asked for (infinity); a gaussian's, clipped to [low, high], puts
+    its tails' mass in the end bins. A bin a split of this size would fill less than once in
+    expectation (a narrow gaussian's far tail) is not asked for."""
+    if p.dist != "gaussian":
+        return np.full(len(edges) - 1, np.inf)
+    mean = p.mean if p.mean is not None else (p.low + p.high) / 2
+    std = p.std if p.std is not None else (p.high - p.low) / 6
+    cdf = np.array([0.5 * (1.0 + math.erf((x - mean) / (std * math.sqrt(2.0)))) for x in edges])
+    cdf[0], cdf[-1] = 0.0, 1.0  # clipped: the tails are drawn at low and high
+    return n * np.diff(cdf)
 
 
 def _edge(x: float, step: float) -> str:
