@@ -483,9 +483,10 @@ def test_the_gym_adapter_refuses_a_team(team_sets):
 
 
 def test_a_team_run_and_a_lone_run_evaluate_on_the_same_defenders(
-    team_sets, tmp_path, tiny_run, lone_run
+    team_sets, tmp_path, tiny_run, lone_run, caplog
 ):
     import csv
+    import logging
 
     from rlplat.experiment.evaluation import evaluate_run
 
@@ -519,8 +520,10 @@ def test_a_team_run_and_a_lone_run_evaluate_on_the_same_defenders(
     with pytest.raises(ConfigError, match=r"trained with attackers=2, this evaluation flies"):
         evaluate_run(team, attackers=1, out_dir=tmp_path / "f", **kwargs)
     refused = r"trained with attackers=1, this evaluation flies .*lone_in_team=true flies it"
-    with pytest.raises(ConfigError, match=refused):
+    caplog.clear()
+    with caplog.at_level(logging.WARNING), pytest.raises(ConfigError, match=refused):
         evaluate_run(lone, scenarios_dir=team_sets[2, 1].path, out_dir=tmp_path / "g", **kwargs)
+    assert "anyway" not in caplog.text  # refused: no "evaluating anyway" before the error
     # The defenders are the set's alone (attackers= only flies fewer attackers).
     two = r"with defenders=1, this evaluation flies defenders=2 \(scenarios_dir\)$"
     with pytest.raises(ConfigError, match=two):

@@ -388,8 +388,8 @@ def evaluate_run(
     scenarios = resolve_scenarios(cfg, scenarios_dir or cfg.get("scenarios_dir"))
     expected = run_summary.get("scenario_digest") or (state or {}).get("scenario_digest")
     source = "summary.json" if "scenario_digest" in run_summary else "checkpoint"
-    same_set = check_scenarios(scenarios, expected, strict_scenarios, source)
-    warn_vision_apart(cfg.env.vision_semi_axes, scenarios, "the run", "; evaluating with the run's")
+    if strict_scenarios:  # a refusal; without it, the warning waits for the checks below
+        check_scenarios(scenarios, expected, True, source)
     require_scenarios(scenarios, [split], "the evaluation")
     n = len(scenarios.split(split))
     # A baseline flies its own velocity commands (eq. 2), not through a learner's action.
@@ -423,6 +423,10 @@ def evaluate_run(
                 actor = artifact_policy(policy, files, state, env, compiler, features)
         else:
             actor = make_scripted_policy(policy, env, **policy_args)
+        # Checked: what it flies fits the env. Now what it flies on may differ from training.
+        same_set = check_scenarios(scenarios, expected, strict_scenarios, source)
+        warn_vision_apart(cfg.env.vision_semi_axes, scenarios, "the run",
+                          "; evaluating with the run's")  # fmt: skip
 
         # Replay.
         warn_replacing(out_dir, scenarios.digest)  # checked: it will be replaced
