@@ -388,8 +388,9 @@ def evaluate_run(
     scenarios = resolve_scenarios(cfg, scenarios_dir or cfg.get("scenarios_dir"))
     expected = run_summary.get("scenario_digest") or (state or {}).get("scenario_digest")
     source = "summary.json" if "scenario_digest" in run_summary else "checkpoint"
-    if strict_scenarios:  # a refusal; without it, the warning waits for the checks below
-        check_scenarios(scenarios, expected, True, source)
+    # strict_scenarios refuses another set here; without it, the warning waits for the checks
+    # below, so that a refused evaluation says one thing.
+    same_set = check_scenarios(scenarios, expected, True, source) if strict_scenarios else None
     require_scenarios(scenarios, [split], "the evaluation")
     n = len(scenarios.split(split))
     # A baseline flies its own velocity commands (eq. 2), not through a learner's action.
@@ -424,7 +425,8 @@ def evaluate_run(
         else:
             actor = make_scripted_policy(policy, env, **policy_args)
         # Checked: what it flies fits the env. Now what it flies on may differ from training.
-        same_set = check_scenarios(scenarios, expected, strict_scenarios, source)
+        if same_set is None:
+            same_set = check_scenarios(scenarios, expected, False, source)
         warn_vision_apart(cfg.env.vision_semi_axes, scenarios, "the run",
                           "; evaluating with the run's")  # fmt: skip
 
