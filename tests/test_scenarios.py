@@ -121,57 +121,46 @@ def test_splits_have_alike_distributions_on_a_large_set(make_spec):
                 assert abs(n_here - share * n_all) <= 2, (s, r, k)
 
 
+def _speed_bins(spec, splits) -> list[str]:
+    """The attacker speed bins the quality report finds missing."""
+    missing = quality_report(spec, splits)["completeness"]["missing"]
+    return [m for m in missing if "attacker_max_speed" in m]
+
+
+def _val_speeds_kept(spec, splits, keep) -> None:
+    """Keep only the val scenarios whose attacker speed ``keep(speeds)`` (a mask) keeps."""
+    val = splits["val"]
+    mask = keep(val.values[:, spec.param_names.index("attacker_max_speed")])
+    splits["val"] = dataclasses.replace(
+        val, ids=[x for x, k in zip(val.ids, mask, strict=True) if k],
+        values=val.values[mask], route=val.route[mask], strategy=val.strategy[mask],
+    )  # fmt: skip
+
+
 def test_quality_report_asks_only_for_bins_that_hold_a_grid_value(make_spec):
     # Speeds 3.0-3.1 on a 0.1 grid: two values, ten bins. The eight bins between them can never
     # be filled, so the speed is complete once both values occur; a bin that holds a value and
     # no scenario still counts as missing.
-    from rlplat.scenarios import quality_report
-
     narrow = ("low=3.0", "high=3.1", "resolution=0.1")
     spec = make_spec("scenario.n_train=200", "scenario.n_val=50", "scenario.n_test=50",
                      *(f"scenario.params.attacker_max_speed.{x}" for x in narrow))  # fmt: skip
     splits = generate(spec)
-
-    def speed_bins(comp):
-        return [m for m in comp["missing"] if "attacker_max_speed" in m]
-
-    assert speed_bins(quality_report(spec, splits)["completeness"]) == []
-    i = spec.param_names.index("attacker_max_speed")
-    val = splits["val"]
-    keep = val.values[:, i] < 3.05  # drop every val scenario at 3.1
-    splits["val"] = dataclasses.replace(
-        val, ids=[x for x, k in zip(val.ids, keep, strict=True) if k],
-        values=val.values[keep], route=val.route[keep], strategy=val.strategy[keep],
-    )  # fmt: skip
-    missing = speed_bins(quality_report(spec, splits)["completeness"])
-    assert missing == ["val: attacker_max_speed bin [3.09, 3.1]"]
+    assert _speed_bins(spec, splits) == []
+    _val_speeds_kept(spec, splits, lambda v: v < 3.05)  # drop every val scenario at 3.1
+    assert _speed_bins(spec, splits) == ["val: attacker_max_speed bin [3.09, 3.1]"]
 
 
 def test_quality_report_asks_a_gaussian_only_for_the_bins_its_draws_reach(make_spec):
     # Attacker speeds gaussian at 3.0 +- 0.2 m/s on [1, 5]: the bins 5 to 10 std from the mean
     # expect no draw in a split of this size and are not asked for (they made every such set
     # INCOMPLETE); a bin the split would fill is still reported when it holds no scenario.
-    from rlplat.scenarios import quality_report
-
     narrow = ("dist=gaussian", "mean=3.0", "std=0.2")
     spec = make_spec("scenario.n_train=400", "scenario.n_val=200", "scenario.n_test=200",
                      *(f"scenario.params.attacker_max_speed.{x}" for x in narrow))  # fmt: skip
     splits = generate(spec)
-
-    def speed_bins(comp):
-        return [m for m in comp["missing"] if "attacker_max_speed" in m]
-
-    assert speed_bins(quality_report(spec, splits)["completeness"]) == []
-    i = spec.param_names.index("attacker_max_speed")
-    val = splits["val"]
-    keep = (val.values[:, i] < 2.6) | (val.values[:, i] >= 3.0)  # empty the bin [2.6, 3.0)
-    splits["val"] = dataclasses.replace(
-        val, ids=[x for x, k in zip(val.ids, keep, strict=True) if k],
-        values=val.values[keep], route=val.route[keep], strategy=val.strategy[keep],
-    )  # fmt: skip
-    assert speed_bins(quality_report(spec, splits)["completeness"]) == [
-        "val: attacker_max_speed bin [2.6, 3]"
-    ]
+    assert _speed_bins(spec, splits) == []
+    _val_speeds_kept(spec, splits, lambda v: (v < 2.6) | (v >= 3.0))  # empty [2.6, 3.0)
+    assert _speed_bins(spec, splits) == ["val: attacker_max_speed bin [2.6, 3]"]
 
 
 def test_a_gaussian_drawn_mostly_outside_its_range_is_logged(make_spec, caplog):
