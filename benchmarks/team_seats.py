@@ -61,6 +61,7 @@ from tensordict.nn import TensorDictModuleBase
 from rlplat.agents.checkpoint import actor_from_state, load_checkpoint
 from rlplat.agents.export import observation_key
 from rlplat.envs.components import GuidedVelocityAction
+from rlplat.envs.kinematics import pure_pursuit
 from rlplat.errors import ConfigError
 from rlplat.eval.episodes import evaluate
 from rlplat.experiment.evaluation import check_policy_fits, checkpoint_path, load_run_config
@@ -171,8 +172,8 @@ def seat_wait(env, within: float):
         flown = law.guidance(action_fn, rel, v_other, max_speed, a_other, meeting)
         own = env.dynamics.position[:, env.attackers]
         setpoint = env._target()[0][:, :1].expand_as(own)
-        speed = max_speed.unsqueeze(-1).clamp_min(1e-6)
-        wait = (action_fn.gain * (setpoint - own) / speed).clamp(-1.0, 1.0)
+        command = pure_pursuit(own, setpoint, max_speed, action_fn.gain)  # m/s, saturated
+        wait = command / max_speed.unsqueeze(-1).clamp_min(1e-6)
         distance = rel.norm(dim=-1)
         waits = ~nearest_seat(distance) & (distance > within)
         return torch.where(waits.unsqueeze(-1), wait, flown)

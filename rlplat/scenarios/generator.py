@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-import math
 import re
 from dataclasses import dataclass
 from itertools import combinations
@@ -229,10 +228,7 @@ def _warn_clipped(spec: ScenarioSpec, share: float = 0.05) -> None:
     for name, p in zip(spec.param_names, spec.param_specs, strict=True):
         if p.dist != "gaussian":
             continue
-        below, above = (
-            0.5 * (1.0 + math.erf(sign * (x - p.mean) / (p.std * math.sqrt(2.0))))
-            for sign, x in ((1.0, p.low), (-1.0, p.high))
-        )
+        below, above = p.cdf(p.low), 1.0 - p.cdf(p.high)
         if below + above > share:
             log.warning(
                 "scenario.params.%s: the gaussian (mean %g, std %g) puts %.0f %% of its draws "

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from rlplat.scenarios.generator import SplitColumns, grid_keys, offset_reach
-from rlplat.scenarios.spec import STRATEGIES, ScenarioSpec
+from rlplat.scenarios.spec import STRATEGIES, ParamSpec, ScenarioSpec
 
 
 def quality_report(spec: ScenarioSpec, splits: dict[str, SplitColumns]) -> dict[str, Any]:
@@ -83,16 +83,14 @@ def _completeness(spec: ScenarioSpec, splits: dict[str, SplitColumns]) -> dict[s
     return {"complete": not missing, "bins": spec.quality_bins, "missing": missing}
 
 
-def _expected_draws(p, edges: np.ndarray, n: int) -> np.ndarray:
+def _expected_draws(p: ParamSpec, edges: np.ndarray, n: int) -> np.ndarray:
     """How many of ``n`` draws of parameter ``p`` each bin (``edges``) expects: a uniform
     parameter's every bin is asked for (infinity); a gaussian's, clipped to [low, high], puts
     its tails' mass in the end bins. A bin a split of this size would fill less than once in
     expectation (a narrow gaussian's far tail) is not asked for."""
     if p.dist != "gaussian":
         return np.full(len(edges) - 1, np.inf)
-    mean = p.mean if p.mean is not None else (p.low + p.high) / 2
-    std = p.std if p.std is not None else (p.high - p.low) / 6
-    cdf = np.array([0.5 * (1.0 + math.erf((x - mean) / (std * math.sqrt(2.0)))) for x in edges])
+    cdf = np.array([p.cdf(x) for x in edges])
     cdf[0], cdf[-1] = 0.0, 1.0  # clipped: the tails are drawn at low and high
     return n * np.diff(cdf)
 

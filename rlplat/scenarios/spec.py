@@ -53,6 +53,11 @@ class ParamSpec:
     mean: float | None = None
     std: float | None = None
 
+    def cdf(self, x: float) -> float:
+        """The gaussian's probability of a draw below ``x`` before it is clipped to
+        [low, high] (a gaussian parameter's; its mean and std are resolved)."""
+        return 0.5 * (1.0 + math.erf((x - self.mean) / (self.std * math.sqrt(2.0))))
+
     @property
     def levels(self) -> int:
         """Number of grid values in [low, high], counted in millionths (the files keep 6
