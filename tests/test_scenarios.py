@@ -183,6 +183,21 @@ def test_a_gaussian_drawn_mostly_outside_its_range_is_logged(make_spec, caplog):
     assert not caplog.records
 
 
+def test_a_teams_gaussian_is_logged_once_under_its_config_field(make_spec, caplog):
+    # The extra drones' columns (attacker1_max_speed, defender1_dx, ...) are drawn from their
+    # first drone's field: the warning names that field, once, as the config spells it.
+    wide = ("dist=gaussian", "mean=2.0", "std=10")
+    spread = ("dist=gaussian", "mean=0", "std=50")
+    spec = make_spec(*_team(3, 2, "scenario.n_train=40", "scenario.n_val=10",
+                            "scenario.n_test=10",
+                            *(f"scenario.params.attacker_max_speed.{x}" for x in wide),
+                            *(f"scenario.defender_spread.{x}" for x in spread)))  # fmt: skip
+    with caplog.at_level(logging.WARNING, logger="rlplat.scenarios.generator"):
+        generate(spec)
+    fields = [r.getMessage().split(":")[0] for r in caplog.records]
+    assert fields == ["scenario.params.attacker_max_speed", "scenario.defender_spread"]
+
+
 def test_a_resolution_of_the_whole_range_draws_both_ends(make_spec):
     # 5.0 - 4.9 is 0.0999999... in floating point: a step of 0.1 is the whole range, not more.
     ends = ("low=4.9", "high=5.0", "resolution=0.1")
@@ -497,6 +512,36 @@ def test_unsatisfiable_constraints_are_refused(make_spec):
     assert "narrow the offsets out of view (attacker_dx [-48, 48] beyond 40 m), " in message
     assert "\n" not in message
     assert offsets_out_of_view(make_spec()) == []  # the default ranges are the ellipsoid's
+
+
+def test_starts_beyond_what_the_files_hold_are_not_drawn(make_spec, tmp_path):
+    # An altitude plus an attacker's offset can pass 1e5 m, which no scenario file may hold: such
+    # draws are not kept (the set loads), and where none is left the refusal names the rule.
+    z = ("low=99980", "high=99999", "resolution=1")
+    spec = make_spec("scenario.n_train=60", "scenario.n_val=20", "scenario.n_test=20",
+                     *(f"scenario.params.defender_z.{x}" for x in z))  # fmt: skip
+    write_scenario_set(spec, tmp_path / "high")
+    starts = ScenarioSet.load(tmp_path / "high").split("train")["attacker_start"][..., 2]
+    assert starts.max() <= 1e5 and starts.max() > 99_990  # the rule binds, and only there
+    dz = ("low=6", "high=13")
+    spec = make_spec("scenario.n_train=6", "scenario.n_val=2", "scenario.n_test=2",
+                     *(f"scenario.params.defender_z.{x}" for x in ("low=99995", "high=99999")),
+                     *(f"scenario.params.attacker_dz.{x}" for x in dz))  # fmt: skip
+    with pytest.raises(ConfigError, match=r"starts within ±100000 m\)$"):
+        generate(spec)
+
+
+def test_quality_report_asks_no_bin_the_least_altitude_rules_out(make_spec):
+    # Defenders at 2-4 m, attackers at least 1 m up: an attacker offset below -3 m is never
+    # drawn, so the three lowest of attacker_dz's ten bins on [-13, 13] are not asked for.
+    z = ("low=2", "high=4")
+    spec = make_spec("scenario.n_train=300", "scenario.n_val=100", "scenario.n_test=100",
+                     *(f"scenario.params.defender_z.{x}" for x in z))  # fmt: skip
+    splits = generate(spec)
+    i = spec.param_names.index("attacker_dz")
+    assert min(c.values[:, i].min() for c in splits.values()) >= -3.0
+    missing = quality_report(spec, splits)["completeness"]["missing"]
+    assert not [m for m in missing if re.search(r"attacker_dz bin \[-(13|10.4|7.8),", m)]
 
 
 def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:

@@ -10,7 +10,7 @@ from itertools import combinations
 import numpy as np
 
 from rlplat.errors import ConfigError
-from rlplat.scenarios.spec import PARAM_NAMES, STRATEGIES, ParamSpec, ScenarioSpec
+from rlplat.scenarios.spec import MAX_MAGNITUDE, PARAM_NAMES, STRATEGIES, ParamSpec, ScenarioSpec
 
 log = logging.getLogger(__name__)
 
@@ -133,7 +133,8 @@ def feasible(spec: ScenarioSpec, values: np.ndarray) -> np.ndarray:
 
     For every attacker-defender pair the defender lies inside the attacker's vision ellipsoid
     (world-axis aligned) and at least ``min_distance`` away; every attacker starts at or above
-    ``min_altitude``; every two drones of the same team start at least ``min_separation`` apart.
+    ``min_altitude``; every two drones of the same team start at least ``min_separation`` apart;
+    every start lies within ±``MAX_MAGNITUDE`` m (what the files hold).
     """
     offsets = _drone_columns(spec, values, "attacker", ("dx", "dy", "dz"))  # (n, k, 3)
     attackers, defenders = start_positions(spec, values)
@@ -147,6 +148,8 @@ def feasible(spec: ScenarioSpec, values: np.ndarray) -> np.ndarray:
     far = np.sqrt(x**2 + y**2 + h**2) >= spec.min_distance
     ok = (inside & far).all(axis=(1, 2))
     ok &= (attackers[..., 2] >= spec.min_altitude).all(axis=1)
+    for pos in (attackers, defenders):  # what the files hold (an altitude plus an offset)
+        ok &= (np.abs(pos) <= MAX_MAGNITUDE).all(axis=(1, 2))
     for pos in (offsets, defenders):  # same-team pairs (z offsets compare like altitudes)
         for i, j in combinations(range(pos.shape[1]), 2):
             d = pos[:, i] - pos[:, j]
@@ -185,7 +188,8 @@ def _distinct_feasible(spec: ScenarioSpec, rng: np.random.Generator) -> np.ndarr
         f"scenario: {len(keys)} distinct scenarios of the {n} requested (n_train + n_val + "
         f"n_test) meet the constraints after {drawn:,} draws ({accepted:,} draws met them); "
         f"{hint}lower the counts, refine the resolution or relax the constraints (the attacker "
-        "offset ranges against the vision ellipsoid, min_distance, min_altitude, min_separation)"
+        "offset ranges against the vision ellipsoid, min_distance, min_altitude, min_separation, "
+        f"starts within ±{MAX_MAGNITUDE:g} m)"
     )
 
 
@@ -209,6 +213,23 @@ def offset_reach(spec: ScenarioSpec, name: str) -> float | None:
     return None if match is None else spec.vision_semi_axes["xyz".index(match.group(1))]
 
 
+def drawable(spec: ScenarioSpec, name: str, values: np.ndarray) -> np.ndarray:
+    """Which ``values`` (grid values of column ``name``) some scenario can hold, by the start
+    constraints one column meets alone, (len(values),) bool: an attacker offset within the
+    vision ellipsoid's semi-axis on its axis; an attacker altitude (``defender_z`` plus an
+    ``attacker*_dz``) of at least ``min_altitude`` and at most ``MAX_MAGNITUDE``."""
+    ok = np.ones(len(values), dtype=bool)
+    reach = offset_reach(spec, name)
+    if reach is not None:  # an offset beyond the vision ellipsoid is never drawn
+        ok &= np.abs(values) <= reach
+    z, dz = spec.params["defender_z"], spec.params["attacker_dz"]
+    if re.fullmatch(r"attacker\d*_dz", name):
+        ok &= (values + z.high >= spec.min_altitude) & (values + z.low <= MAX_MAGNITUDE)
+    elif name == "defender_z":  # the first defender: every attacker's offset is from it
+        ok &= (values + dz.high >= spec.min_altitude) & (values + dz.low <= MAX_MAGNITUDE)
+    return ok
+
+
 def _stratified_labels(spec: ScenarioSpec, strata: np.ndarray, rng: np.random.Generator):
     """Assign a split to each row so every stratum is shared among splits in proportion."""
     n = len(strata)
@@ -224,16 +245,20 @@ def _stratified_labels(spec: ScenarioSpec, strata: np.ndarray, rng: np.random.Ge
 
 def _warn_clipped(spec: ScenarioSpec, share: float = 0.05) -> None:
     """Log each gaussian parameter that draws more than ``share`` of its values outside
-    [low, high]: those are drawn at the ends, which the quality report does not show."""
-    for name, p in zip(spec.param_names, spec.param_specs, strict=True):
+    [low, high]: those are drawn at the ends, which the quality report does not show. Once per
+    config field (an extra drone's columns are drawn from their first drone's field)."""
+    fields = [(f"params.{name}", p) for name, p in spec.params.items()]
+    if spec.defenders > 1:  # the extra defenders' x and y offsets
+        fields.append(("defender_spread", spec.defender_spread))
+    for field, p in fields:
         if p.dist != "gaussian":
             continue
         below, above = p.cdf(p.low), 1.0 - p.cdf(p.high)
         if below + above > share:
             log.warning(
-                "scenario.params.%s: the gaussian (mean %g, std %g) puts %.0f %% of its draws "
+                "scenario.%s: the gaussian (mean %g, std %g) puts %.0f %% of its draws "
                 "below low %g and %.0f %% above high %g; they are drawn at low and high",
-                name, p.mean, p.std, 100 * below, p.low, 100 * above, p.high,
+                field, p.mean, p.std, 100 * below, p.low, 100 * above, p.high,
             )  # fmt: skip
 
 

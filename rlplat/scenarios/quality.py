@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from rlplat.scenarios.generator import SplitColumns, grid_keys, offset_reach
+from rlplat.scenarios.generator import SplitColumns, drawable, grid_keys
 from rlplat.scenarios.spec import STRATEGIES, ParamSpec, ScenarioSpec
 
 
@@ -71,9 +71,7 @@ def _completeness(spec: ScenarioSpec, splits: dict[str, SplitColumns]) -> dict[s
             # The grid as the files hold it (6 decimals): 0.1 + 2 * 0.1 is 0.30000000000000004,
             # whose edge a written 0.3 falls below.
             values = np.round(p.low + np.arange(p.levels) * p.resolution, 6)
-            reach = offset_reach(spec, name)
-            if reach is not None:  # an offset beyond the vision ellipsoid is never drawn
-                values = values[np.abs(values) <= reach]
+            values = values[drawable(spec, name, values)]  # e.g. not beyond the ellipsoid
             grid, _ = np.histogram(values, bins=edges)
             likely = _expected_draws(p, edges, len(cols)) >= 1.0
             for b in np.flatnonzero((counts == 0) & (grid > 0) & likely):
