@@ -1,3 +1,4 @@
+import csv
 import math
 
 import numpy as np
@@ -14,6 +15,7 @@ from rlplat.eval.metrics import (
     wilson_interval,
 )
 from rlplat.eval.report import pick_episodes
+from rlplat.eval.tables import write_csv
 
 
 @pytest.mark.parametrize(
@@ -110,6 +112,30 @@ def test_a_summarys_times_are_the_ones_its_episodes_csv_holds():
     from_csv = np.array([float(f"{float(t):.6g}") for t in times])
     assert s["mean_time_to_capture_s"] == from_csv.mean()
     assert s["median_time_to_capture_s"] == np.median(from_csv)
+
+
+def test_episodes_csv_keeps_a_scenarios_values_to_the_files_six_decimals(tmp_path):
+    # A fine grid's speeds 1.249999 and 1.0 m/s: the summary bins the ratio below 1.25; read
+    # back from episodes.csv (pool) it must bin there too, so the scenario's columns are
+    # written as the scenario files hold them, and what was measured to 6 significant digits.
+    def f32(v: float) -> float:  # values fly as float32
+        return float(np.float32(v))
+
+    a, d = f32(1.249999), f32(1.0)
+    row = {"scenario_id": "test-000000", "attacker_start_x": f32(-1000.125),
+           "attacker_start_z": f32(1000.123), "attacker_max_speed": a, "defender_max_speed": d,
+           "speed_ratio": speed_ratio(a, d), "team_speed_ratio": speed_ratio(a, d),
+           "time_to_capture_s": f32(59.9), "min_distance_m": f32(3.14159274)}  # fmt: skip
+    write_csv(tmp_path / "episodes.csv", [row])
+    with open(tmp_path / "episodes.csv", newline="") as f:
+        [back] = csv.DictReader(f)
+    assert back["attacker_max_speed"] == back["speed_ratio"] == "1.249999"
+    assert back["team_speed_ratio"] == "1.249999" and back["defender_max_speed"] == "1"
+    assert (back["attacker_start_x"], back["attacker_start_z"]) == ("-1000.125", "1000.123")
+    assert (back["time_to_capture_s"], back["min_distance_m"]) == ("59.9", "3.14159")
+    edges = (0.5, 0.8, 1.0, 1.25, 2.0)
+    binned = speed_ratio_bin([row["speed_ratio"], float(back["speed_ratio"])], edges)
+    assert binned.tolist() == [3, 3]
 
 
 def test_pick_episodes_takes_fastest_captures_and_worst_misses():

@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -237,20 +238,38 @@ def _xyz(name: str, value: list[float]) -> dict[str, float]:
     return {f"{name}_{a}": v for a, v in zip("xyz", value, strict=True)}
 
 
+#: The columns that say what a scenario is (starts, maximum speeds, speed ratios): written as
+#: the scenario files hold them (up to 6 decimals), not to the 6 significant digits of what was
+#: measured, so that read back they bin as the summary did (1.249999 stays below 1.25).
+SCENARIO_COLUMN = re.compile(r".*(_start_[xyz]|max_speed|speed_ratio)")
+
+
 def write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=list(rows[0]), lineterminator="\n")
     writer.writeheader()
+    exact = {k for k in rows[0] if SCENARIO_COLUMN.fullmatch(k)}
     for row in rows:
-        writer.writerow({k: _cell(v) for k, v in row.items()})
+        writer.writerow({k: _cell(v, k in exact) for k, v in row.items()})
     atomic_write_text(path, buffer.getvalue())
 
 
-def _cell(value: Any) -> str:
+def _cell(value: Any, scenario: bool = False) -> str:
     if value is None:
         return ""
     if isinstance(value, bool):
         return str(int(value))
     if isinstance(value, float):
-        return f"{value:{CSV_FLOAT}}"
+        return _scenario_float(value) if scenario else f"{value:{CSV_FLOAT}}"
     return str(value)
+
+
+def _scenario_float(value: float) -> str:
+    """A scenario's value to 6 decimals: a start or a maximum speed flies as float32 (1.1 is
+    1.10000002), so its shortest float32 decimal; a speed ratio is rounded already."""
+    if not math.isfinite(value):
+        return f"{value:{CSV_FLOAT}}"
+    if value != round(value, 6):
+        value = float(str(np.float32(value)))
+    text = f"{value:.6f}".rstrip("0").rstrip(".")
+    return "0" if text == "-0" else text
