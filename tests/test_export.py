@@ -431,6 +431,14 @@ def test_a_guided_controller_exports_with_its_guidance(
     assert ("route_conformity, computed by the host:" in text) == (conformity is not None)
     if conformity is not None:
         assert "route_lag 0.9 0.9 0.35, conformity_time 1, control_period 0.1" in text
+    # The route's setpoints the observation reads (attacker_v10 on), and how they move on.
+    setpoint = card["interface"].get("route_setpoint")
+    assert (setpoint is not None) == (obs_dim >= 20)
+    assert ("route_setpoint, computed by the host:" in text) == (setpoint is not None)
+    if action_name == "guidance_law":  # the command the parameters make, in both files
+        assert "velocity command = pn x max speed per axis" in action["unit"]
+        assert "The velocity command = pn x max speed per axis" in text
+        assert "pn = clamp(gain * (r + lead * u * t_go) / V, -1, 1) per axis" in text
     # Next to the declaration too: the action is not the velocity command.
     assert "action: in [-1, 1]; not the velocity command itself" in (out / "policy.h").read_text()
     ev = evaluate_run(run, policy="c", ckpt="last", plots=False)
@@ -580,6 +588,54 @@ def test_the_cards_law_formulas_are_the_law_the_env_flies(unreachable):
         )
         fly_to = [min(max(law.gain * a / float(speed[i]), -1.0), 1.0) for a in aim[i].tolist()]
         assert got[i].tolist() == pytest.approx(pn if homes else fly_to, abs=1e-5), i
+
+
+@pytest.mark.parametrize("drone", ["defender_v1", "attacker_v10"])
+def test_the_cards_setpoint_rule_is_the_setpoint_the_observation_reads(
+    write_small_set, tmp_path, drone
+):
+    # A host builds the observation's setpoint features from the card's rule: followed as
+    # worded along flown episodes (the defender's positions after each step, its route), it
+    # gives the setpoint the env's observation reads, for a defender (its own) and for an
+    # attacker that sees the route ahead (the first defender's, and the one after it).
+    from torchrl.envs.utils import step_mdp
+
+    from rlplat.agents.policies import make_scripted_policy
+
+    route_flyers = write_small_set(tmp_path, "scenario.strategy_mix.nn=0")
+    env = build_env(compose_config("train", [f"drone={drone}"]), scenarios=route_flyers,
+                    split="test", num_envs=16)  # fmt: skip
+    model = export_module.host_models(env)["route_setpoint"]
+    assert "within acceptance m of it (Euclidean distance)" in model["rule"]
+    assert model["defender"] == ("the drone itself" if drone == "defender_v1" else
+                                 "the scenario's first defender, for every attacker")  # fmt: skip
+    flies = "setpoint_follower" if drone == "defender_v1" else "route_intercept"
+    policy = make_scripted_policy(flies, env)
+    names = [f["name"] for f in env.obs_fn.features()]
+    own = names.index("(setpoint - p_own).x")  # where each 3-vector starts
+    ahead = names.index("(next_setpoint - p_own).x") if drone == "attacker_v10" else None
+    td = env.reset()
+    route = env.routes[env.route[:, 0]]  # (N, S, 3): each env's defender's route
+    rows, last = torch.arange(16), route.shape[1] - 1
+    w = torch.zeros(16, dtype=torch.long)  # the rule's setpoint index
+    going = torch.ones(16, dtype=torch.bool)
+    me = 1 if drone == "defender_v1" else 0  # whose position the features are relative to
+    for _ in range(300):
+        p = td["positions"]
+        obs = td["observation"]
+        for at, k in ((own, 0), (ahead, 1)):
+            if at is not None:
+                got = obs[:, at : at + 3] + p[:, me]
+                want = route[rows, (w + k).clamp(max=last)]
+                assert torch.allclose(got[going], want[going], atol=1e-4)
+        td = step_mdp(env.step(policy(td)))
+        after = td["positions"][:, 1]
+        near = (route[rows, w.clamp(max=last)] - after).norm(dim=-1) <= model["acceptance"]
+        w = w + (near & (w <= last) & going)
+        going &= ~td["done"].squeeze(-1)
+        if not going.any():
+            break
+    assert (w > 2).any()  # the rule was followed past several setpoints
 
 
 def test_implementations_that_differ_fail_the_export_and_write_nothing(run, tmp_path):
@@ -829,6 +885,12 @@ def test_a_defender_run_exports_and_flies_the_evaluation(tmp_path, write_set, sh
     card = export_run(run, **QUICK)
     assert card["source"]["learner"] == "defender"
     assert card["interface"]["observation"]["name"] == "route_state"
+    # Its setpoint feature: which setpoint, and when it moves on, in the card and the header.
+    assert card["interface"]["route_setpoint"]["defender"] == "the drone itself"
+    header = " ".join(
+        line.lstrip(" *") for line in (run / "export/best/policy.h").read_text().splitlines()
+    )
+    assert "route_setpoint, computed by the host:" in header and "acceptance 1." in header
     assert all(d <= 1e-5 for d in card["equivalence"]["max_abs_action_difference"].values())
     for policy in ("c", "onnx"):
         ev = evaluate_run(run, policy=policy, plots=False)

@@ -130,7 +130,7 @@ def test_the_card_names_every_component_of_a_corrected_law_action(scenarios, acc
     card = env.action_fn.card()
     assert len(card["features"]) == env.action_fn.dim == (7 if accel_reach else 6)
     assert card["features"][-3:] == ["correction.x", "correction.y", "correction.z"]
-    assert "clamp(law + 0.5 * (a" in card["unit"] and card["guidance"]["correction_reach"] == 0.5
+    assert "clamp(pn + 0.5 * (a" in card["unit"] and card["guidance"]["correction_reach"] == 0.5
 
 
 def test_a_correction_of_reach_two_flies_every_scripted_policy(scenarios):

@@ -1046,7 +1046,7 @@ class GuidanceLawAction(GuidedVelocityAction):
             f"{self.lead_reach:g} * a1, 0), max lead time = {self.max_lead_time:g} * "
             f"{self.horizon_factor:g}^a2 s"
             + (f", acceleration lead = {self._accel_term()}" if learned else "")
-            + (f"; corrected: {self._correction_term()}" if self.correction_reach > 0 else ""),
+            + f"; {self._command_term()}",
             "guidance": {
                 **self._law_card(),
                 "gain_factor": self.gain_factor,
@@ -1057,11 +1057,15 @@ class GuidanceLawAction(GuidedVelocityAction):
             },
         }
 
-    def _correction_term(self) -> str:
+    def _command_term(self, pn: str = "pn as guidance.formula") -> str:
+        """The velocity command the law (``pn``, with the parameters the action sets) and the
+        correction make."""
+        if self.correction_reach <= 0:
+            return f"velocity command = pn x max speed per axis ({pn})"
         c = f"a{self.law_dim}..a{self.law_dim + 2}"
         return (
-            f"velocity command = clamp(law + {self.correction_reach:g} * ({c}), -1, 1) x "
-            "max speed per axis"
+            f"velocity command = clamp(pn + {self.correction_reach:g} * ({c}), -1, 1) x "
+            f"max speed per axis ({pn})"
         )
 
     def describe(self) -> list[str]:
@@ -1071,7 +1075,8 @@ class GuidanceLawAction(GuidedVelocityAction):
             f"{self.lead:g} + {self.lead_reach:g} * a1, 0), max lead time {self.max_lead_time:g}"
             f" * {self.horizon_factor:g}^a2 s (rlplat.envs.kinematics.intercept_action).",
             *self._describe_accel(),
-            *([f"Corrected: {self._correction_term()}."] if self.correction_reach > 0 else []),
+            *textwrap.wrap(f"The {self._command_term('pn as follows with those parameters')}:", 78),
+            *textwrap.wrap(self.pn_formula() + ".", 78),
         ]
 
 

@@ -63,6 +63,7 @@ from rlplat.agents.native import (
     time_onnx,
 )
 from rlplat.envs.kinematics import ROUTE_RESOLUTION
+from rlplat.envs.pursuit import ROLES
 from rlplat.errors import ConfigError, ExportError
 from rlplat.eval.episodes import rollout_observations
 from rlplat.experiment.config import compose_config
@@ -308,10 +309,31 @@ REACHABLE_RULE = (
 )
 
 
+#: Which setpoint of its route a defender flies to (the observation's ``setpoint`` and
+#: ``next_setpoint``), as the card words it.
+SETPOINT_RULE = (
+    "setpoint = the route setpoint the defender flies to: its route's first at the episode's "
+    "start; it moves on to the next when, after a step, the defender (in play) is within "
+    "acceptance m of it (Euclidean distance); past the route's end it stays the route's last. "
+    "next_setpoint = the one after it (the route's last past the end)"
+)
+
+
 def host_models(env) -> dict[str, dict[str, Any]]:
     """What the caller computes itself for the observation and the law, with its numbers: the
-    meeting point's route path and the route conformity features (none for other drones)."""
+    route setpoint the observation reads, the meeting point's route path and the route
+    conformity features (none for other drones)."""
     models: dict[str, dict[str, Any]] = {}
+    if any("setpoint" in name for name in env.obs_fn.own_names):
+        models["route_setpoint"] = {
+            "model": "rlplat.envs.pursuit (the defender's waypoint), for the observation's "
+            "setpoint features",
+            "rule": SETPOINT_RULE,
+            "defender": "the drone itself"
+            if ROLES[env.learner] == "defender"
+            else "the scenario's first defender, for every attacker",
+            "acceptance": env.setpoint_acceptance,
+        }
     path = route_path_interface(env)
     if path is not None:  # the meeting point the caller computes, from this path
         models["route_path"] = {
