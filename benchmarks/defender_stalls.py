@@ -22,18 +22,9 @@ from pathlib import Path
 
 import torch
 
-from rlplat.agents.checkpoint import actor_from_state, load_checkpoint, saved_interface
-from rlplat.agents.policies import make_scripted_policy
 from rlplat.envs.pursuit import ROLES
 from rlplat.eval.episodes import evaluate
-from rlplat.experiment.evaluation import (
-    baseline_args,
-    check_policy_fits,
-    checkpoint_path,
-    load_run_config,
-    plain_action,
-)
-from rlplat.experiment.factory import build_eval_env, eval_num_envs, resolve_scenarios
+from rlplat.experiment.evaluation import flown_split
 from rlplat.scenarios import STRATEGIES
 
 
@@ -92,26 +83,14 @@ def main() -> None:
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
 
-    run_cfg = load_run_config(args.run_dir)
-    # The baselines fly the plain velocity action (route_intercept: the run's law), as evaluate.py
-    cfg = run_cfg if args.policy == "checkpoint" else plain_action(run_cfg)
-    scenarios = resolve_scenarios(cfg, args.scenarios)
-    split = scenarios.split(args.split)
+    cfg, env, policy = flown_split(args.run_dir, args.scenarios, args.split, args.policy,
+                                   args.ckpt)  # fmt: skip
+    split = env.scenario_set.split(args.split)
     n = len(split)
-    env = build_eval_env(cfg, scenarios=scenarios, split=args.split,
-                         num_envs=eval_num_envs(cfg, n))  # fmt: skip
     if ROLES[env.learner] != "attacker":
         raise SystemExit(f"defender_stalls: {args.run_dir} trains a {ROLES[env.learner]}")
     if env.num_defenders != 1:
         raise SystemExit(f"defender_stalls: one defender per scenario, got {env.num_defenders}")
-    if args.policy == "checkpoint":
-        path = checkpoint_path(args.run_dir, args.ckpt)
-        state = load_checkpoint(path)
-        lone = saved_interface(state)["attackers"] == 1 and env.num_attackers > 1
-        features = check_policy_fits(state, cfg, env, path, lone_in_team=lone)
-        policy = actor_from_state(state, env.drone_action_spec, "cpu", env.group, features)
-    else:
-        policy = make_scripted_policy(args.policy, env, **baseline_args(args.policy, run_cfg))
     results = evaluate(env, policy, record=True)
     env.close()
 

@@ -28,19 +28,10 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from rlplat.agents.checkpoint import actor_from_state, load_checkpoint, saved_interface
-from rlplat.agents.policies import make_scripted_policy
 from rlplat.envs.components import DroneView
 from rlplat.envs.pursuit import ROLES
 from rlplat.eval.episodes import evaluate
-from rlplat.experiment.evaluation import (
-    baseline_args,
-    check_policy_fits,
-    checkpoint_path,
-    load_run_config,
-    plain_action,
-)
-from rlplat.experiment.factory import build_eval_env, eval_num_envs, resolve_scenarios
+from rlplat.experiment.evaluation import flown_split
 
 #: name: (signs of x, y, z; the axes' order), each its own inverse
 MIRRORS = {
@@ -124,26 +115,15 @@ def main() -> None:
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
 
-    run_cfg = load_run_config(args.run_dir)
-    cfg = run_cfg if args.policy == "checkpoint" else plain_action(run_cfg)
-    scenarios = resolve_scenarios(cfg, args.scenarios)
-    n = len(scenarios.split(args.split))
-    env = build_eval_env(cfg, scenarios=scenarios, split=args.split,
-                         num_envs=eval_num_envs(cfg, n))  # fmt: skip
+    _, env, policy = flown_split(args.run_dir, args.scenarios, args.split, args.policy,
+                                 args.ckpt)  # fmt: skip
+    n = env.batch_size[0]
     if ROLES[env.learner] != "attacker":
         raise SystemExit(f"defender_symmetry: {args.run_dir} trains a {ROLES[env.learner]}")
     if env.num_defenders != 1:
         raise SystemExit(f"defender_symmetry: one defender per scenario, got {env.num_defenders}")
     if env.defender_network is None:
         raise SystemExit(f"defender_symmetry: no defender of {args.scenarios} flies the network")
-    if args.policy == "checkpoint":
-        path = checkpoint_path(args.run_dir, args.ckpt)
-        state = load_checkpoint(path)
-        lone = saved_interface(state)["attackers"] == 1 and env.num_attackers > 1
-        features = check_policy_fits(state, cfg, env, path, lone_in_team=lone)
-        policy = actor_from_state(state, env.drone_action_spec, "cpu", env.group, features)
-    else:
-        policy = make_scripted_policy(args.policy, env, **baseline_args(args.policy, run_cfg))
     network = env.defender_network
     recorder = Recorder(network, env, args.every)
     env.defender_network = recorder

@@ -543,6 +543,28 @@ def baseline_args(policy: str, cfg: DictConfig) -> dict[str, float | str]:
             for k in law if action.get(k) is not None}  # fmt: skip
 
 
+def flown_split(
+    run_dir: Path, scenarios_dir: str | Path, split: str, policy: str = "checkpoint",
+    ckpt: str = "best",
+) -> tuple[DictConfig, PursuitEnv, Any]:  # fmt: skip
+    """A run's config, an eval env of a split of ``scenarios_dir`` (one env per scenario) and
+    the policy that flies it, as ``evaluate.py`` flies them: the run's checkpoint (a policy
+    trained alone in every seat of a team) or a baseline, which flies the plain velocity
+    action (``route_intercept``: the run's law). For the analyses in ``benchmarks/``."""
+    run_cfg = load_run_config(run_dir)
+    cfg = run_cfg if policy == "checkpoint" else plain_action(run_cfg)
+    scenarios = resolve_scenarios(cfg, scenarios_dir)
+    n = len(scenarios.split(split))
+    env = build_eval_env(cfg, scenarios=scenarios, split=split, num_envs=eval_num_envs(cfg, n))
+    if policy != "checkpoint":
+        return cfg, env, make_scripted_policy(policy, env, **baseline_args(policy, run_cfg))
+    path = checkpoint_path(Path(run_dir), ckpt)
+    state = load_checkpoint(path)
+    lone = saved_interface(state)["attackers"] == 1 and env.num_attackers > 1
+    features = check_policy_fits(state, cfg, env, path, lone_in_team=lone)
+    return cfg, env, actor_from_state(state, env.drone_action_spec, "cpu", env.group, features)
+
+
 def plain_action(cfg: DictConfig) -> DictConfig:
     """``cfg`` with the plain velocity action (eq. 2) in place of any other. A reward's
     ``action_sq`` prices a correction to a law; a plain command is none, so it is dropped."""
