@@ -18,13 +18,12 @@ from __future__ import annotations
 import argparse
 import logging
 import statistics
-from pathlib import Path
 
 import torch
 
 from rlplat.envs.pursuit import ROLES
 from rlplat.eval.episodes import evaluate
-from rlplat.experiment.evaluation import flown_split
+from rlplat.experiment.evaluation import flight_arguments, flown_split
 from rlplat.scenarios import STRATEGIES
 
 
@@ -68,15 +67,7 @@ def non_negative(text: str) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("run_dir", type=Path, help="an attacker's training run")
-    parser.add_argument("--scenarios", required=True, help="a scenario set")
-    parser.add_argument("--split", default="test", choices=("train", "val", "test"))
-    parser.add_argument("--ckpt", default="best", choices=("best", "last"))
-    parser.add_argument(
-        "--policy",
-        default="checkpoint",
-        choices=("checkpoint", "proportional_navigation", "pure_pursuit", "route_intercept"),
-    )
+    flight_arguments(parser, split="test")
     parser.add_argument("--speed", type=positive, default=0.5, help="m/s, slower is a stall")
     parser.add_argument("--seconds", type=positive, default=5.0, help="s, a stall's least length")
     parser.add_argument("--after", type=non_negative, default=2.0, help="s, from the start")

@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
-from pathlib import Path
 
 import torch
 from torch import Tensor, nn
@@ -31,7 +30,7 @@ from torch import Tensor, nn
 from rlplat.envs.components import DroneView
 from rlplat.envs.pursuit import ROLES
 from rlplat.eval.episodes import evaluate
-from rlplat.experiment.evaluation import flown_split
+from rlplat.experiment.evaluation import flight_arguments, flown_split
 
 #: name: (signs of x, y, z; the axes' order), each its own inverse
 MIRRORS = {
@@ -99,15 +98,7 @@ def fraction(text: str) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("run_dir", type=Path, help="an attacker's training run")
-    parser.add_argument("--scenarios", required=True, help="a scenario set")
-    parser.add_argument("--split", default="val", choices=("train", "val", "test"))
-    parser.add_argument("--ckpt", default="best", choices=("best", "last"))
-    parser.add_argument(
-        "--policy",
-        default="checkpoint",
-        choices=("checkpoint", "proportional_navigation", "pure_pursuit", "route_intercept"),
-    )
+    flight_arguments(parser, split="val")
     parser.add_argument("--every", type=positive_int, default=10, help="record every n-th step")
     parser.add_argument(
         "--tolerance", type=fraction, default=0.1, help="of the maximum speed, per command"

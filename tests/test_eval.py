@@ -361,6 +361,20 @@ def test_last_checkpoint_and_a_path(trained_run):
     assert flown.out_dir == trained_run / "eval" / "val-other-run-best"
 
 
+@pytest.mark.parametrize("policy", ["checkpoint", "proportional_navigation"])
+def test_the_analyses_fly_a_split_as_evaluate_does(trained_run, scenarios, tmp_path, policy):
+    # benchmarks/defender_stalls.py and defender_symmetry.py fly their split through
+    # flown_split: the same episodes as evaluate.py's (the baseline on the plain action).
+    from rlplat.experiment.evaluation import flown_split
+
+    cfg, env, flier = flown_split(trained_run, scenarios.path, "val", policy, "last")
+    assert (cfg.action.name == "velocity") == (policy != "checkpoint")
+    flown = evaluate(env, flier)
+    ev = evaluate_run(trained_run, policy=policy, ckpt="last", split="val", plots=False,
+                      trajectories=0, out_dir=tmp_path / policy)  # fmt: skip
+    assert torch.equal(flown.returns, ev.results.returns)
+
+
 def test_an_ensemble_flies_the_mean_action_of_its_members(trained_run, tmp_path):
     from rlplat.agents.policies import MeanAction
 

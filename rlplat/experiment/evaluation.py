@@ -543,6 +543,20 @@ def baseline_args(policy: str, cfg: DictConfig) -> dict[str, float | str]:
             for k in law if action.get(k) is not None}  # fmt: skip
 
 
+def flight_arguments(parser, split: str = "test") -> None:
+    """The command-line arguments of :func:`flown_split` (an ``argparse`` parser's): the run
+    directory, ``--scenarios``, ``--split`` (default ``split``), ``--ckpt`` and ``--policy``."""
+    parser.add_argument("run_dir", type=Path, help="an attacker's training run")
+    parser.add_argument("--scenarios", required=True, help="a scenario set")
+    parser.add_argument("--split", default=split, choices=SPLITS)
+    parser.add_argument("--ckpt", default="best", choices=("best", "last"))
+    parser.add_argument(
+        "--policy",
+        default="checkpoint",
+        choices=("checkpoint", "proportional_navigation", "pure_pursuit", "route_intercept"),
+    )
+
+
 def flown_split(
     run_dir: Path, scenarios_dir: str | Path, split: str, policy: str = "checkpoint",
     ckpt: str = "best",
