@@ -608,7 +608,9 @@ def test_the_cards_setpoint_rule_is_the_setpoint_the_observation_reads(
     model = export_module.host_models(env)["route_setpoint"]
     assert "within acceptance m of it (Euclidean distance)" in model["rule"]
     assert model["defender"] == ("the drone itself" if drone == "defender_v1" else
-                                 "the scenario's first defender, for every attacker")  # fmt: skip
+                                 "the observation's setpoint features: the scenario's first "
+                                 "defender, for every attacker, caught or not; route_path: "
+                                 "each defender's own")  # fmt: skip
     flies = "setpoint_follower" if drone == "defender_v1" else "route_intercept"
     policy = make_scripted_policy(flies, env)
     names = [f["name"] for f in env.obs_fn.features()]

@@ -1057,7 +1057,9 @@ class GuidanceLawAction(GuidedVelocityAction):
             },
         }
 
-    def _command_term(self, pn: str = "pn as guidance.formula") -> str:
+    def _command_term(
+        self, pn: str = "pn as guidance.formula, with the gain, lead and max lead time above"
+    ) -> str:
         """The velocity command the law (``pn``, with the parameters the action sets) and the
         correction make."""
         if self.correction_reach <= 0:

@@ -238,9 +238,10 @@ def _xyz(name: str, value: list[float]) -> dict[str, float]:
     return {f"{name}_{a}": v for a, v in zip("xyz", value, strict=True)}
 
 
-#: The columns that say what a scenario is (starts, maximum speeds, speed ratios): written as
-#: the scenario files hold them (up to 6 decimals), not to the 6 significant digits of what was
-#: measured, so that read back they bin as the summary did (1.249999 stays below 1.25).
+#: The columns that say what a scenario is (starts, maximum speeds, speed ratios): written to at
+#: most 6 decimals, the scenario files' (:func:`_scenario_float`), not to the 6 significant
+#: digits of what was measured, so that read back they bin as the summary did (1.249999 stays
+#: below 1.25).
 SCENARIO_COLUMN = re.compile(r".*(_start_[xyz]|max_speed|speed_ratio)")
 
 
@@ -265,8 +266,10 @@ def _cell(value: Any, scenario: bool = False) -> str:
 
 
 def _scenario_float(value: float) -> str:
-    """A scenario's value to 6 decimals: a start or a maximum speed flies as float32 (1.1 is
-    1.10000002), so its shortest float32 decimal; a speed ratio is rounded already."""
+    """A scenario's value to at most 6 decimals: a start or a maximum speed flies as float32
+    (1.1 is 1.10000002), so the shortest decimal of its float32 value (a value of more than
+    about 7 significant digits comes back as float32 keeps it); a speed ratio is rounded to 6
+    decimals already and written as it is."""
     if not math.isfinite(value):
         return f"{value:{CSV_FLOAT}}"
     if value != round(value, 6):

@@ -313,7 +313,8 @@ REACHABLE_RULE = (
 #: ``next_setpoint``), as the card words it.
 SETPOINT_RULE = (
     "setpoint = the route setpoint the defender flies to: its route's first at the episode's "
-    "start; it moves on to the next when, after a step, the defender (in play) is within "
+    "start; it moves on to the next when, after a step, the defender (not caught before that "
+    "step) is within "
     "acceptance m of it (Euclidean distance); past the route's end it stays the route's last. "
     "next_setpoint = the one after it (the route's last past the end)"
 )
@@ -324,17 +325,27 @@ def host_models(env) -> dict[str, dict[str, Any]]:
     route setpoint the observation reads, the meeting point's route path and the route
     conformity features (none for other drones)."""
     models: dict[str, dict[str, Any]] = {}
-    if any("setpoint" in name for name in env.obs_fn.own_names):
+    path = route_path_interface(env)
+    reads = any("setpoint" in name for name in env.obs_fn.own_names)
+    if reads or path is not None:
+        if ROLES[env.learner] == "defender":
+            whose = "the drone itself"
+        else:
+            whose = "; ".join(
+                ([] if not reads else ["the observation's setpoint features: the scenario's "
+                                       "first defender, for every attacker, caught or not"])
+                + ([] if path is None else ["route_path: each defender's own"])
+            )  # fmt: skip
         models["route_setpoint"] = {
-            "model": "rlplat.envs.pursuit (the defender's waypoint), for the observation's "
-            "setpoint features",
+            "model": "rlplat.envs.pursuit (the defender's waypoint), for "
+            + " and ".join(
+                ["the observation's setpoint features"] * reads
+                + ["the route path"] * (path is not None)
+            ),
             "rule": SETPOINT_RULE,
-            "defender": "the drone itself"
-            if ROLES[env.learner] == "defender"
-            else "the scenario's first defender, for every attacker",
+            "defender": whose,
             "acceptance": env.setpoint_acceptance,
         }
-    path = route_path_interface(env)
     if path is not None:  # the meeting point the caller computes, from this path
         models["route_path"] = {
             "model": "rlplat.envs.kinematics.route_path (velocity lag, setpoint gain, acceptance), "
