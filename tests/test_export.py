@@ -590,19 +590,23 @@ def test_the_cards_law_formulas_are_the_law_the_env_flies(unreachable):
         assert got[i].tolist() == pytest.approx(pn if homes else fly_to, abs=1e-5), i
 
 
-@pytest.mark.parametrize("drone", ["defender_v1", "attacker_v10"])
+@pytest.mark.parametrize(
+    "drone,defenders", [("defender_v1", 1), ("attacker_v10", 1), ("attacker_v10", 2)]
+)
 def test_the_cards_setpoint_rule_is_the_setpoint_the_observation_reads(
-    write_small_set, tmp_path, drone
+    write_small_set, tmp_path, drone, defenders
 ):
     # A host builds the observation's setpoint features from the card's rule: followed as
     # worded along flown episodes (the defender's positions after each step, its route), it
     # gives the setpoint the env's observation reads, for a defender (its own) and for an
-    # attacker that sees the route ahead (the first defender's, and the one after it).
+    # attacker that sees the route ahead (the first defender's, and the one after it; with two
+    # defenders, the first's also once it is caught).
     from torchrl.envs.utils import step_mdp
 
     from rlplat.agents.policies import make_scripted_policy
 
-    route_flyers = write_small_set(tmp_path, "scenario.strategy_mix.nn=0")
+    route_flyers = write_small_set(tmp_path, "scenario.strategy_mix.nn=0",
+                                   f"scenario.defenders={defenders}")  # fmt: skip
     env = build_env(compose_config("train", [f"drone={drone}"]), scenarios=route_flyers,
                     split="test", num_envs=16)  # fmt: skip
     model = export_module.host_models(env)["route_setpoint"]
@@ -617,12 +621,14 @@ def test_the_cards_setpoint_rule_is_the_setpoint_the_observation_reads(
     own = names.index("(setpoint - p_own).x")  # where each 3-vector starts
     ahead = names.index("(next_setpoint - p_own).x") if drone == "attacker_v10" else None
     td = env.reset()
-    route = env.routes[env.route[:, 0]]  # (N, S, 3): each env's defender's route
+    route = env.routes[env.route[:, 0]]  # (N, S, 3): each env's first defender's route
     rows, last = torch.arange(16), route.shape[1] - 1
     w = torch.zeros(16, dtype=torch.long)  # the rule's setpoint index
     going = torch.ones(16, dtype=torch.bool)
-    me = 1 if drone == "defender_v1" else 0  # whose position the features are relative to
-    for _ in range(300):
+    first = env.num_attackers  # the first defender's drone index
+    me = first if drone == "defender_v1" else 0  # whose position the features are relative to
+    caught_going = torch.zeros(16, dtype=torch.bool)  # the first caught, the episode going on
+    for _ in range(400):
         p = td["positions"]
         obs = td["observation"]
         for at, k in ((own, 0), (ahead, 1)):
@@ -630,14 +636,17 @@ def test_the_cards_setpoint_rule_is_the_setpoint_the_observation_reads(
                 got = obs[:, at : at + 3] + p[:, me]
                 want = route[rows, (w + k).clamp(max=last)]
                 assert torch.allclose(got[going], want[going], atol=1e-4)
+        caught = td["caught"][:, 0].clone()  # before the step
+        caught_going |= caught & going
         td = step_mdp(env.step(policy(td)))
-        after = td["positions"][:, 1]
+        after = td["positions"][:, first]
         near = (route[rows, w.clamp(max=last)] - after).norm(dim=-1) <= model["acceptance"]
-        w = w + (near & (w <= last) & going)
+        w = w + (near & (w <= last) & going & ~caught)
         going &= ~td["done"].squeeze(-1)
         if not going.any():
             break
     assert (w > 2).any()  # the rule was followed past several setpoints
+    assert caught_going.any() == (defenders == 2)  # and past a capture of the first
 
 
 def test_implementations_that_differ_fail_the_export_and_write_nothing(run, tmp_path):
