@@ -314,9 +314,8 @@ REACHABLE_RULE = (
 SETPOINT_RULE = (
     "setpoint = the route setpoint the defender flies to: its route's first at the episode's "
     "start; it moves on to the next when, after a step, the defender (not caught before that "
-    "step) is within "
-    "acceptance m of it (Euclidean distance); past the route's end it stays the route's last. "
-    "next_setpoint = the one after it (the route's last past the end)"
+    "step) is within acceptance m of it (Euclidean distance); past the route's end it stays "
+    "the route's last. next_setpoint = the one after it (the route's last past the end)"
 )
 
 
