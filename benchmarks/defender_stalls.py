@@ -22,6 +22,7 @@ import statistics
 import torch
 
 from rlplat.envs.pursuit import ROLES
+from rlplat.errors import RlplatError
 from rlplat.eval.episodes import evaluate
 from rlplat.experiment.evaluation import flight_arguments, flown_split
 from rlplat.scenarios import STRATEGIES
@@ -74,8 +75,11 @@ def main() -> None:
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
 
-    cfg, env, policy = flown_split(args.run_dir, args.scenarios, args.split, args.policy,
-                                   args.ckpt)  # fmt: skip
+    try:  # a bad run, set or policy: one line
+        cfg, env, policy = flown_split(args.run_dir, args.scenarios, args.split, args.policy,
+                                       args.ckpt)  # fmt: skip
+    except RlplatError as e:
+        raise SystemExit(f"defender_stalls: {e}") from None
     split = env.scenario_set.split(args.split)
     n = len(split)
     if ROLES[env.learner] != "attacker":

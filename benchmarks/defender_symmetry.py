@@ -29,6 +29,7 @@ from torch import Tensor, nn
 
 from rlplat.envs.components import DroneView
 from rlplat.envs.pursuit import ROLES
+from rlplat.errors import RlplatError
 from rlplat.eval.episodes import evaluate
 from rlplat.experiment.evaluation import flight_arguments, flown_split
 
@@ -106,8 +107,11 @@ def main() -> None:
     args = parser.parse_args()
     logging.basicConfig(level=logging.WARNING)
 
-    _, env, policy = flown_split(args.run_dir, args.scenarios, args.split, args.policy,
-                                 args.ckpt)  # fmt: skip
+    try:  # a bad run, set or policy: one line
+        _, env, policy = flown_split(args.run_dir, args.scenarios, args.split, args.policy,
+                                     args.ckpt)  # fmt: skip
+    except RlplatError as e:
+        raise SystemExit(f"defender_symmetry: {e}") from None
     n = env.batch_size[0]
     if ROLES[env.learner] != "attacker":
         raise SystemExit(f"defender_symmetry: {args.run_dir} trains a {ROLES[env.learner]}")
