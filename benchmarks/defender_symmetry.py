@@ -42,14 +42,16 @@ MIRRORS = {
 }
 
 
+def tensors(view: DroneView) -> dict[str, Tensor]:
+    """The view's tensor fields by name (the unset ones, None, left out)."""
+    fields = ((f.name, getattr(view, f.name)) for f in dataclasses.fields(view))
+    return {name: value for name, value in fields if isinstance(value, Tensor)}
+
+
 def mirror(view: DroneView, signs: Tensor, order: list[int]) -> DroneView:
     """The view with every world-frame 3-vector mirrored (scalars as they are)."""
-    changes = {}
-    for field in dataclasses.fields(view):
-        value = getattr(view, field.name)
-        if isinstance(value, Tensor) and value.shape[-1:] == (3,):
-            changes[field.name] = value[..., order] * signs
-    return dataclasses.replace(view, **changes)
+    vectors = {k: v[..., order] * signs for k, v in tensors(view).items() if v.shape[-1:] == (3,)}
+    return dataclasses.replace(view, **vectors)
 
 
 class Recorder(nn.Module):
@@ -69,16 +71,8 @@ class Recorder(nn.Module):
     def forward(self, view: DroneView) -> Tensor:
         if self.calls % self.every == 0:
             rows = self.flies()
-            self.views.append(
-                dataclasses.replace(
-                    view,
-                    **{
-                        f.name: getattr(view, f.name)[rows].clone()
-                        for f in dataclasses.fields(view)
-                        if isinstance(getattr(view, f.name), Tensor)
-                    },
-                )
-            )
+            kept = {k: v[rows].clone() for k, v in tensors(view).items()}
+            self.views.append(dataclasses.replace(view, **kept))
         self.calls += 1
         return self.network(view)
 
@@ -126,13 +120,9 @@ def main() -> None:
     env.close()
 
     views = recorder.views
+    recorded = [tensors(v) for v in views]
     view = dataclasses.replace(
-        views[0],
-        **{
-            f.name: torch.cat([getattr(v, f.name) for v in views])
-            for f in dataclasses.fields(views[0])
-            if isinstance(getattr(views[0], f.name), Tensor)
-        },
+        views[0], **{k: torch.cat([r[k] for r in recorded]) for k in recorded[0]}
     )
     with torch.no_grad():
         command = network(view)[..., :2]  # (S, 2), fractions of the maximum speed

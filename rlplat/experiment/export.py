@@ -325,24 +325,21 @@ def host_models(env) -> dict[str, dict[str, Any]]:
     conformity features (none for other drones)."""
     models: dict[str, dict[str, Any]] = {}
     path = route_path_interface(env)
-    reads = any("setpoint" in name for name in env.obs_fn.own_names)
-    if reads or path is not None:
-        if ROLES[env.learner] == "defender":
-            whose = "the drone itself"
-        else:
-            whose = "; ".join(
-                ([] if not reads else ["the observation's setpoint features: the scenario's "
-                                       "first defender, for every attacker, caught or not"])
-                + ([] if path is None else ["route_path: each defender's own"])
-            )  # fmt: skip
+    uses, whose = [], []  # what reads the setpoint, and whose it is there
+    if any("setpoint" in name for name in env.obs_fn.own_names):
+        uses.append("the observation's setpoint features")
+        whose.append("the observation's setpoint features: the scenario's first defender, for "
+                     "every attacker, caught or not")  # fmt: skip
+    if path is not None:
+        uses.append("the route path")
+        whose.append("route_path: each defender's own")
+    if uses:
         models["route_setpoint"] = {
-            "model": "rlplat.envs.pursuit (the defender's waypoint), for "
-            + " and ".join(
-                ["the observation's setpoint features"] * reads
-                + ["the route path"] * (path is not None)
-            ),
+            "model": f"rlplat.envs.pursuit (the defender's waypoint), for {' and '.join(uses)}",
             "rule": SETPOINT_RULE,
-            "defender": whose,
+            "defender": "the drone itself"
+            if ROLES[env.learner] == "defender"
+            else "; ".join(whose),
             "acceptance": env.setpoint_acceptance,
         }
     if path is not None:  # the meeting point the caller computes, from this path
