@@ -516,11 +516,15 @@ def test_a_step_that_runs_short_is_run_on_for_the_time_it_lacks(scenarios, caplo
         env = airsim_env(scenarios, srv.address)  # on_time_mismatch: error, tolerance 0.02 s
         env.reset()
         srv.start_recording()
+        ran = []
         with caplog.at_level("WARNING", logger="rlplat.envs.airsim.dynamics"):
             for _ in range(3):
                 env.rand_step()
-                # 0.06 s, then 0.6 of the 0.04 s it lacks: within the tolerance
-                assert env.dynamics.last_advance_s == pytest.approx(0.084, abs=1e-6)
+                ran.append(env.dynamics.last_advance_s)
+                # within the tolerance of the env's clock: the next step asks for the rest
+                assert abs(sum(ran) - len(ran) * PERIOD) <= 0.02
+        assert ran[0] == pytest.approx(0.084, abs=1e-6)  # 0.06 s, then 0.6 of the 0.04 it lacks
+        assert ran[1] == pytest.approx(0.4 * 0.6 * 0.116 + 0.6 * 0.116, abs=1e-6)  # 0.016 more
         calls = [r.get("call") for r in srv.take_recording()]
         assert calls.count("simContinueForTime") == 6
         assert caplog.text.count("a step of 0.1 s ran 0.0400 s short") == 1  # once
@@ -530,6 +534,27 @@ def test_a_step_that_runs_short_is_run_on_for_the_time_it_lacks(scenarios, caplo
         env.reset()
         with pytest.raises(AirSimError, match=r"a step advanced 0\.0344 s of sim time"):
             env.rand_step()
+        env.close()
+
+
+def test_a_simulator_that_runs_whole_physics_ticks_keeps_to_the_envs_clock(scenarios):
+    # AirSim ends a continue at the first 3-ms physics tick at or past its time: 0.102 s for
+    # 0.1 s. Each step asks for the period less what the clock has run over, so the episode's
+    # sim time stays within a tick of steps x period instead of drifting 2 % a step.
+    with TestServer(SETTINGS, whole_ticks=True) as srv:
+        env = airsim_env(scenarios, srv.address)
+        env.reset()
+        dyn = env.dynamics
+        srv.start_recording()
+        ran = []
+        for _ in range(30):
+            dyn.advance(torch.zeros(1, dyn.num_drones, 3), PERIOD)
+            ran.append(dyn.last_advance_s)
+        asked = [r["params"][0] for r in srv.take_recording()
+                 if r.get("call") == "simContinueForTime"]  # fmt: skip
+        assert asked[:3] == [pytest.approx(PERIOD), pytest.approx(0.098), pytest.approx(0.099)]
+        assert {round(t, 6) for t in ran} == {0.099, 0.102}
+        assert abs(sum(ran) - 30 * PERIOD) <= 0.003 + 1e-9
         env.close()
 
 

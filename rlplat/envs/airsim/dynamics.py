@@ -12,7 +12,10 @@ endpoint (N = 1: an env batch of several simulators is a TorchRL ``ParallelEnv``
   at its whole part, :func:`~rlplat.envs.airsim.settings.effective_clock_speed`); then every
   drone's state and collision flag are read. The sim time that passed is measured from the state
   timestamps; off by more than ``step_tolerance_s`` it is an error or a logged warning
-  (``on_time_mismatch``), never silent.
+  (``on_time_mismatch``), never silent. AirSim ends a continue at the first physics tick at or
+  past its time (3-ms ticks: 0.102 s for 0.1 s), so each step asks for the period less what
+  the episode's clock has run over so far: the sim clock keeps to ``steps x period`` within a
+  tick instead of drifting by the overshoot every step.
 - ``reset``: the simulation is reset (every vehicle at rest at its spawn point), paused again,
   each drone given API control and armed again (a reset clears both) and placed at its start
   (ENU world -> NED world -> the vehicle's own spawn-relative frame, spawn points from the
@@ -149,6 +152,7 @@ class AirSimDynamics(DroneDynamics):
                         self.clock_speed, self._sim_speed, self._sim_speed)  # fmt: skip
         self.collided = torch.zeros(num_envs, num_drones, dtype=torch.bool, device=self.device)
         self.last_advance_s = float("nan")  # sim seconds the last step advanced
+        self._due_ns = 0  # the sim time (ns) the env's clock is at: steps x period since reset
         self._ran_short = False  # a step has been run on for time it lacked (logged once)
         self._misplaced = False  # a drone read away from its placement (logged once)
         self.placement_error_m = 0.0  # m, the farthest a drone read from it at the last reset
@@ -167,6 +171,7 @@ class AirSimDynamics(DroneDynamics):
             for name in self.names:
                 self.client.take_control(name)
             self._timestamp_ns = self._read("reading the drones after connecting")
+            self._due_ns = self._timestamp_ns
         except BaseException:
             self.client.close()
             raise
@@ -197,14 +202,18 @@ class AirSimDynamics(DroneDynamics):
             command: (1, D, 3) float32, goal velocity m/s ENU; clipped per axis to ±max_speed.
             period: control period in seconds (> 0).
 
-        A step short of ``period`` by more than ``step_tolerance_s`` is run on for the time it
-        lacks (up to ``TOP_UPS`` times, under the same commands, which last ``period +
-        move_margin_s``): AirSim's ``simContinueForTime`` counts its wall clock, and a physics
-        tick that runs long on a loaded machine is not made up.
+        The step asks for the time that brings the sim clock to the env's (``period`` after
+        the last step's due time): a simulator that runs whole physics ticks past a continue's
+        time has the overshoot taken off the next step. A step that leaves the clock short of
+        its due time by more than ``step_tolerance_s`` is run on for the time it lacks (up to
+        ``TOP_UPS`` times, under the same commands, which last ``period + move_margin_s``):
+        AirSim's ``simContinueForTime`` counts its wall clock, and a physics tick that runs
+        long on a loaded machine is not made up.
 
         Raises:
-            AirSimError: the simulator failed, or (``on_time_mismatch=error``) the step's sim
-                time differs from ``period`` by more than ``step_tolerance_s``.
+            AirSimError: the simulator failed, or (``on_time_mismatch=error``) the sim clock
+                ends the step more than ``step_tolerance_s`` from its due time (a mismatch
+                that is only warned of makes the clock read the new due time).
         """
         if not period > 0:
             raise ValueError(f"period must be > 0, got {period!r}")
@@ -215,36 +224,38 @@ class AirSimDynamics(DroneDynamics):
         for name, velocity in zip(self.names, ned, strict=True):
             self.client.move_velocity(name, velocity, period + self.move_margin_s)
         before, what = self._timestamp_ns, f"the drones after a step of {period:g} s"
-        self._run(period, before, period, what)
+        self._due_ns += round(period * 1e9)
+        ask = max((self._due_ns - before) / 1e9, 0.5 * period)  # less the clock's overshoot
+        self._run(ask, period, what)
         hits = self.collided
         for _ in range(TOP_UPS):  # a collision any read reports counts (it clears on read)
-            if not self._short(before, period):
+            if not self._short():
                 break
-            lacking = period - (self._timestamp_ns - before) / 1e9
+            lacking = (self._due_ns - self._timestamp_ns) / 1e9
             log.log(logging.DEBUG if self._ran_short else logging.WARNING,
                     "simulator at %s: a step of %g s ran %.4f s short (its simContinueForTime "
                     "counts wall time: a loaded machine, or a ClockSpeed other than "
                     "dynamics.clock_speed); such steps are run on for the time they lack",
                     self.client.address, period, lacking)  # fmt: skip
             self._ran_short = True
-            self._run(lacking, before, period, what)
+            self._run(lacking, period, what)
             hits = hits | self.collided
         self.collided = hits
         self._check_time(before, self._timestamp_ns, period)
 
-    def _run(self, seconds: float, before: int, period: float, what: str) -> None:
+    def _run(self, seconds: float, period: float, what: str) -> None:
         """Run the paused simulation ``seconds`` of sim time on and read the drones (again, if
-        the read is short of ``period`` from ``before``: :meth:`_read_again`)."""
+        the read is short of the step's due time: :meth:`_read_again`)."""
         self.client.continue_for(seconds / self._sim_speed, f"a step of {period:g} s")
         self._timestamp_ns = self._read(what)
-        if self._short(before, period):
-            self._read_again(what, before, period)
+        if self._short():
+            self._read_again(what)
 
-    def _short(self, before: int, period: float) -> bool:
-        """Whether the last read is short of a step of ``period`` s from ``before`` (ns)."""
-        return (self._timestamp_ns - before) / 1e9 < period - self.step_tolerance_s
+    def _short(self) -> bool:
+        """Whether the last read is short of the step's due time by more than the tolerance."""
+        return (self._due_ns - self._timestamp_ns) / 1e9 > self.step_tolerance_s
 
-    def _read_again(self, what: str, before: int, period: float) -> None:
+    def _read_again(self, what: str) -> None:
         """After a read short of the period: a simulator whose ``simContinueForTime`` answers
         before its time has run (older AirSim) may have been read before it ran, and may be
         paused again by the time ``simIsPaused`` is asked. Wait for the pause and read again;
@@ -259,10 +270,9 @@ class AirSimDynamics(DroneDynamics):
             now = time.monotonic()
             deadline, last, since = now + self.client.timeout_s, self._timestamp_ns, now
             while time.monotonic() < deadline:
-                ran = (self._timestamp_ns - before) / 1e9
-                if ran >= period - 1e-6:  # the whole step
+                if self._timestamp_ns >= self._due_ns - 1000:  # the whole step (within 1 us)
                     break
-                if not self._short(before, period) and time.monotonic() - since >= STILL_S:
+                if not self._short() and time.monotonic() - since >= STILL_S:
                     break  # within the tolerance, and the clock has stopped: paused there
                 time.sleep(0.001)
                 self._timestamp_ns = self._read(what)
@@ -286,7 +296,7 @@ class AirSimDynamics(DroneDynamics):
         placed = self.position.clone()
         deadline = time.monotonic() + min(PLACEMENT_WAIT_S, self.client.timeout_s)
         while True:  # a simulator may apply a pose on its next frame (paused or not)
-            self._timestamp_ns = self._read("the drones after placing them")
+            self._timestamp_ns = self._due_ns = self._read("the drones after placing them")
             off = (self.position - placed).norm(dim=-1)[0]  # (drones,) m
             if not bool((off > PLACEMENT_TOLERANCE_M).any()) or time.monotonic() > deadline:
                 break
@@ -325,18 +335,19 @@ class AirSimDynamics(DroneDynamics):
 
     def _check_time(self, before: int, after: int, period: float) -> None:
         self.last_advance_s = (after - before) / 1e9
-        gap = self.last_advance_s - period
+        gap = (after - self._due_ns) / 1e9
         if abs(gap) <= self.step_tolerance_s:
             return
         message = (
             f"simulator at {self.client.address}: a step advanced {self.last_advance_s:.4f} s of "
-            f"sim time, the control period is {period:g} s (dynamics.step_tolerance_s="
-            f"{self.step_tolerance_s:g}; check dynamics.clock_speed against the simulator's "
-            "ClockSpeed)"
+            f"sim time, the control period is {period:g} s ({gap:+.4f} s off the env's clock; "
+            f"dynamics.step_tolerance_s={self.step_tolerance_s:g}; check dynamics.clock_speed "
+            "against the simulator's ClockSpeed)"
         )
         if self.on_time_mismatch == "error":
             raise AirSimError(message)
         log.warning("%s", message)
+        self._due_ns = after  # warned: the next step starts from the clock as it reads
 
     def close(self) -> None:
         """Close the connection to the simulator."""

@@ -32,7 +32,8 @@ Sim time: the clock (ns, from the wall clock at start) runs in ``physics_dt`` st
 it follows the wall clock times the speed k that AirSim runs ``clock_speed`` at (above 1 its
 whole part: :func:`~rlplat.envs.airsim.settings.effective_clock_speed`); ``simPause(True)``
 freezes it. ``simContinueForTime(s)`` advances it by exactly ``round(s * k * 1e9)`` ns (whole
-physics steps and one shorter last step), then answers and leaves the simulation paused: like
+physics steps and one shorter last step; ``whole_ticks=True``: whole steps only, up to the first
+at or past that time, as AirSim's clock does), then answers and leaves the simulation paused: like
 AirSim's, its argument counts wall seconds, so with ClockSpeed k a client wanting ``dt`` of sim
 time asks for ``dt / k``. It runs as fast as the machine allows (``realtime=True``: it takes
 ``s`` wall seconds, as a simulator running in real time would; ``continue_runs`` < 1: it runs
@@ -190,6 +191,9 @@ class TestServer:
         continue_runs: the fraction of a ``simContinueForTime``'s time the simulation runs
             (in (0, 1]): AirSim's call counts its wall clock, and on a machine too loaded for
             its physics ticks it runs less sim time than asked (a long tick is not made up).
+        whole_ticks: ``simContinueForTime`` runs whole physics steps, up to the first that
+            ends at or past its time (AirSim: 34 steps of 3 ms, 0.102 s, for 0.1 s), instead
+            of ending on its time with a shorter last step.
     """
 
     __test__ = False  # not a pytest test class
@@ -215,6 +219,7 @@ class TestServer:
         realtime: bool = False,
         continue_answers_at_once: bool = False,
         continue_runs: float = 1.0,
+        whole_ticks: bool = False,
     ) -> None:
         if not isinstance(settings, Mapping):
             raise ConfigError(f"settings must be a dict (settings.json), got {type(settings)}")
@@ -253,6 +258,7 @@ class TestServer:
         self.realtime = bool(realtime)
         self.continue_answers_at_once = bool(continue_answers_at_once)
         self.continue_runs = float(continue_runs)
+        self.whole_ticks = bool(whole_ticks)
         self.recording: list[dict[str, Any]] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
@@ -642,6 +648,8 @@ class TestServer:
         if not math.isfinite(seconds) or seconds < 0:
             raise _Fail(f"seconds must be a finite number >= 0, got {seconds}")
         sim_ns = round(seconds * self.continue_runs * self.sim_speed * 1e9)
+        if self.whole_ticks:  # the first whole physics step at or past the time
+            sim_ns = -(-sim_ns // self.world.dt_ns) * self.world.dt_ns
         if self.continue_answers_at_once:
             self._paused = False  # running until the continue ends
             self._spawn(self._continue(sim_ns))
@@ -702,8 +710,8 @@ def main(argv: Sequence[str] | None = None, settings: Mapping[str, Any] | None =
     Args:
         argv: ``--settings FILE`` (required unless ``settings`` is given), ``--host``,
             ``--port`` (default: the settings' ``ApiServerPort``, else 41451; 0 picks a free
-            one), ``--clock-speed``, ``--realtime``, ``--continue-runs`` and
-            the physics constants (``--tau-xy`` ...).
+            one), ``--clock-speed``, ``--realtime``, ``--continue-runs``, ``--whole-ticks``
+            and the physics constants (``--tau-xy`` ...).
         settings: the settings dict to serve when ``--settings`` is not given.
     """
     parser = ArgumentParser(
@@ -720,6 +728,10 @@ def main(argv: Sequence[str] | None = None, settings: Mapping[str, Any] | None =
     parser.add_argument(
         "--continue-runs", type=float, default=1.0,
         help="fraction of a continue's time the simulation runs (AirSim, loaded)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--whole-ticks", action="store_true",
+        help="continues run whole physics steps, to the first at or past their time (AirSim)",
     )  # fmt: skip
     for name, default in (
         ("tau_xy", 0.9),
@@ -763,6 +775,7 @@ def main(argv: Sequence[str] | None = None, settings: Mapping[str, Any] | None =
         collision_radius=args.collision_radius,
         realtime=args.realtime,
         continue_runs=args.continue_runs,
+        whole_ticks=args.whole_ticks,
     )
     return serve_forever(server)
 
