@@ -634,6 +634,28 @@ def test_a_read_before_the_simulator_ran_is_read_again_and_keeps_its_collision(s
         env.close()
 
 
+@pytest.mark.parametrize("stays", [False, True], ids=["cleared-on-read", "kept"])
+def test_a_contact_is_reported_in_the_steps_it_lasts_whether_or_not_the_flag_clears(stays):
+    # Cosys-AirSim clears the collision flag it reports; AirSim's getCollisionInfo keeps it set
+    # (with the contact's time_stamp) until the next contact: both read the same.
+    with TestServer(SETTINGS, collision_stays=stays) as srv:
+        dyn = AirSimDynamics(num_envs=1, num_drones=2, endpoints=[srv.address],
+                             connect_timeout_s=2.0, timeout_s=1.0)  # fmt: skip
+        start = torch.tensor([[[0.0, 0.0, 10.0], [0.3, 0.0, 10.0]]])  # within the 0.5-m radius
+        dyn.reset(torch.ones(1, dtype=torch.bool), start, torch.zeros(1, 2, 3),
+                  torch.full((1, 2), 5.0))  # fmt: skip
+        apart = torch.tensor([[[-5.0, 0.0, 0.0], [5.0, 0.0, 0.0]]])
+        hits, gaps = [], []
+        for command in [apart] * 3 + [-apart] * 8:  # part, then meet again
+            dyn.advance(command, PERIOD)
+            hits.append(dyn.collided[0].tolist())
+            gaps.append(float((dyn.position[0, 0] - dyn.position[0, 1]).norm()))
+        touching = [hit == [True, True] for hit in hits]
+        assert touching == [True, True] + [False] * 6 + [True] * 3
+        assert min(gaps[2:8]) > 0.5 and gaps[9] < 0.5  # apart in between, then in contact
+        dyn.close()
+
+
 def test_a_simulator_without_the_checking_calls_flies_with_a_warning(scenarios, caplog):
     # listVehicles and simIsPaused only check; a simulator that lacks them still flies.
     with TestServer(SETTINGS) as srv:

@@ -434,6 +434,8 @@ class AirSimClient:
         self._moves: dict[str, Any] = {}  # the last move sent to each vehicle
         self._no_is_paused = False  # the simulator lacks simIsPaused
         self._no_collisions = False  # the simulator lacks simGetCollisionInfo
+        self._contacts: dict[str, Any] = {}  # each vehicle's last reported contact's time_stamp
+        self._kept_flag = False  # a contact's flag was read set again (logged once)
         try:
             import cosysairsim
         except ImportError:
@@ -697,9 +699,14 @@ class AirSimClient:
         return running
 
     def read(self, names: Sequence[str], what: str) -> tuple[list[VehicleState], list[bool]]:
-        """Every vehicle's state and collision flag, sent together; the collision flag clears
-        on read (read it once per step). The fields are read from the answers' maps: an answer
-        that lacks one is an :class:`AirSimError` naming it (never a default)."""
+        """Every vehicle's state and collision flag, sent together. The fields are read from
+        the answers' maps: an answer that lacks one is an :class:`AirSimError` naming it (never
+        a default).
+
+        A collision is reported once: Cosys-AirSim clears the flag it reports, but AirSim's
+        ``getCollisionInfo`` keeps it set with the contact's ``time_stamp`` until the next
+        contact or a reset, so a set flag whose nonzero ``time_stamp`` is the one last
+        reported for that vehicle is the same contact read again, not a new one."""
         states = [self.send("getMultirotorState", n) for n in names]
         asks = not self._no_collisions
         hits = [self.send("simGetCollisionInfo", n) for n in names] if asks else []
@@ -734,8 +741,27 @@ class AirSimClient:
                     f"simulator at {self.address}: its simGetCollisionInfo for {name} ({what}) "
                     f"has no has_collided flag: {raw!r:.80}"
                 )
-            hits.append(bool(flag))
+            hits.append(self._new_contact(name, bool(flag), raw))
         return out, hits
+
+    def _new_contact(self, name: str, flag: bool, raw: Any) -> bool:
+        """Whether a collision answer ``raw`` (flag ``flag``) reports a contact not reported
+        before: see :meth:`read`."""
+        try:
+            stamp = _field(raw, "time_stamp")
+        except KeyError:
+            stamp = None
+        if not flag or isinstance(stamp, bool) or not isinstance(stamp, int) or stamp == 0:
+            return flag
+        if self._contacts.get(name) == stamp:
+            if not self._kept_flag:
+                self._kept_flag = True
+                log.info("simulator at %s keeps a collision's flag set after it is read (as "
+                         "AirSim's getCollisionInfo); a contact counts once, by its time_stamp",
+                         self.address)  # fmt: skip
+            return False
+        self._contacts[name] = stamp
+        return True
 
     def close(self) -> None:
         """Close the connection (the simulation stays as it is)."""

@@ -20,8 +20,8 @@ endpoint (N = 1: an env batch of several simulators is a TorchRL ``ParallelEnv``
   each drone given API control and armed again (a reset clears both) and placed at its start
   (ENU world -> NED world -> the vehicle's own spawn-relative frame, spawn points from the
   simulator's settings.json, ``spawn`` for those it lacks) with ``simSetVehiclePose``; its
-  collision flag is read (cleared). The state the simulator then reports is the drone's
-  position and velocity.
+  collision flag is read (so a contact from before counts no more). The state the simulator
+  then reports is the drone's position and velocity.
 
 Frames are converted only through :mod:`rlplat.envs.airsim.frames`. ``collided`` (N, D) bool
 holds which drones the simulator reported a collision for during the last step (logged, and
@@ -228,7 +228,7 @@ class AirSimDynamics(DroneDynamics):
         ask = max((self._due_ns - before) / 1e9, 0.5 * period)  # less the clock's overshoot
         self._run(ask, period, what)
         hits = self.collided
-        for _ in range(TOP_UPS):  # a collision any read reports counts (it clears on read)
+        for _ in range(TOP_UPS):  # a collision any read reports counts (reported once)
             if not self._short():
                 break
             lacking = (self._due_ns - self._timestamp_ns) / 1e9
@@ -261,7 +261,7 @@ class AirSimDynamics(DroneDynamics):
         paused again by the time ``simIsPaused`` is asked. Wait for the pause and read again;
         a simulator that cannot say whether it is paused (no ``simIsPaused``) is read until
         the step's time has run, within ``timeout_s``. A collision any read reports counts
-        (the simulator clears the flag it reports)."""
+        (each contact is reported once)."""
         self.client.wait_paused(what)
         hits = self.collided
         self._timestamp_ns = self._read(what)

@@ -368,9 +368,12 @@ class SimWorld:
         """Pose: spawn-relative position and orientation."""
         return {"position": vector3r(veh.local()), "orientation": quaternionr(veh.orientation)}
 
-    def read_collision(self, veh: Vehicle) -> dict[str, Any]:
-        """CollisionInfo of the latest contact since the last read (then cleared)."""
-        info, veh.collision = veh.collision, None
+    def read_collision(self, veh: Vehicle, clear: bool = True) -> dict[str, Any]:
+        """CollisionInfo of the latest contact since the last read (then cleared; ``clear=False``:
+        of the latest contact since the reset, kept)."""
+        info = veh.collision
+        if clear:
+            veh.collision = None
         return collision_info(info)
 
 

@@ -43,7 +43,9 @@ True once its ``duration`` of sim time has passed, False when a later motion cal
 vehicle (or ``reset``, ``cancelLastTask``, disarming, releasing API control) cancels it; while
 paused it never completes. ``reset()`` puts every vehicle back at its spawn point and clears
 API control and arming. ``getMultirotorState().collision`` is never filled;
-``simGetCollisionInfo`` returns the latched contact and clears it.
+``simGetCollisionInfo`` returns the latched contact and clears it, as Cosys-AirSim does
+(``collision_stays=True``: keeps it until the next contact or a reset, as AirSim's
+``getCollisionInfo``).
 
 Faults for tests: ``stall()`` keeps every socket open but answers nothing (and freezes the
 clock) until ``unstall()``; ``drop_connections()`` closes every client connection; ``stop()``
@@ -191,6 +193,9 @@ class TestServer:
         continue_runs: the fraction of a ``simContinueForTime``'s time the simulation runs
             (in (0, 1]): AirSim's call counts its wall clock, and on a machine too loaded for
             its physics ticks it runs less sim time than asked (a long tick is not made up).
+        collision_stays: ``simGetCollisionInfo`` keeps reporting the latest contact (its flag
+            set, its ``time_stamp``) until the next contact or a reset, as AirSim's
+            ``getCollisionInfo`` does, instead of clearing it once read (Cosys-AirSim).
         whole_ticks: ``simContinueForTime`` runs whole physics steps, up to the first that
             ends at or past its time (AirSim: 34 steps of 3 ms, 0.102 s, for 0.1 s), instead
             of ending on its time with a shorter last step.
@@ -220,6 +225,7 @@ class TestServer:
         continue_answers_at_once: bool = False,
         continue_runs: float = 1.0,
         whole_ticks: bool = False,
+        collision_stays: bool = False,
     ) -> None:
         if not isinstance(settings, Mapping):
             raise ConfigError(f"settings must be a dict (settings.json), got {type(settings)}")
@@ -259,6 +265,7 @@ class TestServer:
         self.continue_answers_at_once = bool(continue_answers_at_once)
         self.continue_runs = float(continue_runs)
         self.whole_ticks = bool(whole_ticks)
+        self.collision_stays = bool(collision_stays)
         self.recording: list[dict[str, Any]] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
@@ -603,7 +610,9 @@ class TestServer:
             "simSetVehiclePose": ((_pose, b, s), self._set_pose),
             "simGetCollisionInfo": (
                 (s,),
-                lambda n: self.world.read_collision(self._vehicle(n, sim=True)),
+                lambda n: self.world.read_collision(
+                    self._vehicle(n, sim=True), clear=not self.collision_stays
+                ),
             ),
             "simGetGroundTruthKinematics": (
                 (s,),
@@ -710,8 +719,8 @@ def main(argv: Sequence[str] | None = None, settings: Mapping[str, Any] | None =
     Args:
         argv: ``--settings FILE`` (required unless ``settings`` is given), ``--host``,
             ``--port`` (default: the settings' ``ApiServerPort``, else 41451; 0 picks a free
-            one), ``--clock-speed``, ``--realtime``, ``--continue-runs``, ``--whole-ticks``
-            and the physics constants (``--tau-xy`` ...).
+            one), ``--clock-speed``, ``--realtime``, ``--continue-runs``, ``--whole-ticks``,
+            ``--collision-stays`` and the physics constants (``--tau-xy`` ...).
         settings: the settings dict to serve when ``--settings`` is not given.
     """
     parser = ArgumentParser(
@@ -732,6 +741,10 @@ def main(argv: Sequence[str] | None = None, settings: Mapping[str, Any] | None =
     parser.add_argument(
         "--whole-ticks", action="store_true",
         help="continues run whole physics steps, to the first at or past their time (AirSim)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--collision-stays", action="store_true",
+        help="a contact's collision info is kept once read, until the next one (AirSim)",
     )  # fmt: skip
     for name, default in (
         ("tau_xy", 0.9),
@@ -776,6 +789,7 @@ def main(argv: Sequence[str] | None = None, settings: Mapping[str, Any] | None =
         realtime=args.realtime,
         continue_runs=args.continue_runs,
         whole_ticks=args.whole_ticks,
+        collision_stays=args.collision_stays,
     )
     return serve_forever(server)
 
