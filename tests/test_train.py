@@ -3,6 +3,7 @@ import functools
 import json
 import logging
 import os
+import re
 import shutil
 import time
 from pathlib import Path
@@ -384,6 +385,30 @@ def test_a_diverged_run_stops_at_once_with_its_checkpoints_from_before(
     assert logged[-1].endswith(",nan")  # the log shows the batch where it diverged
     best = load_checkpoint(run / "checkpoints" / "best.pt")  # the policy as initialised
     assert all(torch.isfinite(v).all() for v in best["actor"].values())
+    # It stopped before its first validation in the loop: it resumes from the one it made
+    # as initialised (last.pt), and no other run goes into its directory.
+    last = load_checkpoint(run / "checkpoints" / "last.pt")
+    assert all(torch.isfinite(v).all() for v in last["actor"].values())
+    with pytest.raises(ConfigError, match=r"holds a run already; resume=true continues it"):
+        tiny_run(scenarios, run, "train.total_frames=2048")
+    monkeypatch.undo()
+    resumed = tiny_run(scenarios, run, "train.total_frames=2048", "resume=true")
+    assert resumed["frames"] >= 2048 and (run / "summary.json").is_file()
+
+
+def test_a_run_that_stopped_before_its_first_checkpoint_is_neither_continued_nor_mixed(tmp_path):
+    from rlplat.experiment.training import check_run_dir
+
+    (tmp_path / "config.yaml").write_text("seed: 0\n")  # written before a run's first frame
+    where = re.escape(str(tmp_path))
+    for resume in (False, True):
+        with pytest.raises(ConfigError, match=(
+            rf"^{'resume: true, and ' if resume else ''}hydra.run.dir: {where} holds a run "
+            r"that stopped before it saved a checkpoint to continue from \(no last.pt\); "
+            r"another directory starts a new one$"
+        )):  # fmt: skip
+            check_run_dir(tmp_path, resume)
+    check_run_dir(tmp_path / "new", resume=False)  # an empty one starts a run
 
 
 def test_progress_counts_the_budget_nearest_its_end(monkeypatch):
@@ -814,3 +839,15 @@ def test_a_run_records_its_paths_absolute_and_reads_from_anywhere(
     monkeypatch.chdir(tmp_path)
     ev = evaluate_run(run, split="val", plots=False)
     assert ev.summary["scenario_digest"] == scenarios.digest
+
+
+def test_init_from_another_interface_is_refused_without_a_warning_about_its_route_path(
+    scenarios, tmp_path, tiny_run, caplog
+):
+    # attacker_v3 reads no meeting point, so its checkpoint records no route path; starting
+    # the default (which does) from it is refused for its observation, and that alone.
+    v3 = tiny_run(scenarios, tmp_path / "v3", "drone=attacker_v3")
+    refused = pytest.raises(ConfigError, match=r"^init_from: .* trained with observation.name=")
+    with caplog.at_level(logging.WARNING), refused:
+        tiny_run(scenarios, tmp_path / "v14", f"init_from={v3['run_dir']}")
+    assert "route path" not in caplog.text

@@ -155,7 +155,7 @@ def markdown(groups: dict[str, list[dict]], stats: dict[str, dict], reps: int) -
     ]
     for name, records in groups.items():
         metrics = metrics_of(records)
-        lines += ["", f"## {name} ({len(records)} seeds)", ""]
+        lines += ["", f"## {name} ({len(records)} seed{'s' if len(records) != 1 else ''})", ""]
         lines += ["| seed | run | " + " | ".join(metrics.values()) + " |"]
         lines += ["|---|---|" + "---|" * len(metrics)]
         lines += [

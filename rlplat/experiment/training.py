@@ -223,7 +223,8 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
                  "through the action, stored %d times", demos.shape[0], captured,
                  len(plays.scenario_ids), plays.path, algo.demonstration_repeat)  # fmt: skip
 
-    # Validate the policy as initialised: best.pt is never worse than where learning started
+    # Validate the policy as initialised: best.pt is never worse than where learning started,
+    # and last.pt is where a run stopped before its first validation in the loop resumes from
     if resume_state is None:
         validate(run, state, start)
 
@@ -231,7 +232,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     spent = state.frames >= cfg.train.total_frames or (
         deadline is not None and time.perf_counter() >= deadline
     )
-    if spent:
+    if resume_state is None or spent:
         save_checkpoint(run.ckpt_dir / "last.pt", checkpoint(run, state))
     every = cfg.train.eval_every_frames
     next_eval = (state.frames // every + 1) * every
@@ -341,10 +342,18 @@ def checked_start(cfg: DictConfig, run_dir: Path | None, field: str = "hydra.run
 
 
 def check_run_dir(run_dir: Path, resume: bool, field: str = "hydra.run.dir") -> None:
-    """Refuse a run directory that holds a run (its ``checkpoints/last.pt``) without
-    ``resume=true``, which would mix two runs' checkpoints and metrics, and ``resume=true``
-    where there is no run to continue."""
+    """Refuse a run directory that holds a run (its ``config.yaml``, written before its
+    first frame, or its ``checkpoints/last.pt``) without ``resume=true``, which would mix two
+    runs' checkpoints and metrics, and ``resume=true`` where there is no run to continue (a
+    run stopped in its scripted start, before it validated, has none)."""
     last = run_dir / "checkpoints" / "last.pt"
+    stopped = (run_dir / "config.yaml").is_file() and not last.is_file()
+    if stopped:  # e.g. in its scripted start, before the validation that writes last.pt
+        raise ConfigError(
+            f"{'resume: true, and ' if resume else ''}{field}: {run_dir} holds a run that "
+            f"stopped before it saved a checkpoint to continue from (no {last.name}); another "
+            "directory starts a new one"
+        )
     if resume and not last.is_file():
         raise ConfigError(
             f"resume: true, and {field}={run_dir} holds no run to continue (no {last.name})"
@@ -497,9 +506,8 @@ def warm_start_features(
             "entropy coefficient), not a training checkpoint; give a run directory or its "
             "checkpoints/*.pt"
         )
-    check_route_path(state, env, path, "init_from")
     saved, here = saved_interface(state), dict(interface)
-    here.pop("route_path", None)  # checked above
+    here.pop("route_path", None)  # checked below
     learners = "attackers" if ROLES[env.learner] == "attacker" else "defenders"
     alone = saved[learners] == 1 < here[learners]
     if alone:
@@ -509,6 +517,7 @@ def warm_start_features(
     features = env.obs_fn.lone_features(saved["defenders"] > 1) if alone else range(net.obs_dim)
     sizes = {k: v for k, v in net.as_dict().items() if k not in ("obs_dim", "obs_scale")}
     check_same_net(state, {**sizes, "obs_dim": len(features)}, path, "init_from")
+    check_route_path(state, env, path, "init_from")  # last: it may only warn, about a fitting one
     return features
 
 
