@@ -446,6 +446,14 @@ def test_nn_defender_without_network_is_refused(write_small_set, tmp_path):
     write_small_set(tmp_path, "scenario.strategy_mix.nn=1")
     with pytest.raises(ConfigError, match=r"env.defender_network: checkpoint: no file at /no"):
         make_env("env.defender_network=/no/such.pt", scenarios=tmp_path)
+    run = tmp_path / "run"  # a run directory where its checkpoint file is asked for
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "checkpoints" / "best.pt").write_bytes(b"")
+    with pytest.raises(ConfigError, match=(
+        rf"^env.defender_network: checkpoint: {re.escape(str(run))} is a folder, not a "
+        rf"checkpoint file; a run's best is {re.escape(str(run / 'checkpoints' / 'best.pt'))}$"
+    )):  # fmt: skip
+        make_env(f"env.defender_network={run}", scenarios=tmp_path)
     env = make_env(scenarios=tmp_path)  # the shipped network
     with pytest.raises(ConfigError, match=r"scenarios ask for defender_strategy 'nn' but no "):
         parts = (env.dynamics, env.obs_fn, env.action_fn, env.reward_fn)

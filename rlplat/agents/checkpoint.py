@@ -49,6 +49,10 @@ def load_checkpoint(path: str | Path, field: str = "checkpoint") -> dict[str, An
     """Read a checkpoint written by :func:`save_checkpoint`; a clear error if it is not one,
     naming ``field``, the setting that gave the path."""
     path = Path(path)
+    if path.is_dir():
+        best = path / "checkpoints" / "best.pt"
+        hint = f"; a run's best is {best}" if best.is_file() else ""
+        raise ConfigError(f"{field}: {path} is a folder, not a checkpoint file{hint}")
     if not path.is_file():
         raise ConfigError(f"{field}: no file at {path}")
     try:
