@@ -107,6 +107,20 @@ def test_calibrate_recovers_the_servers_constants_into_a_usable_dynamics_file(tm
     assert check.summary()["all"]["max_m"] < 0.01
 
 
+def test_calibrate_on_whole_physics_ticks_fits_each_step_at_the_time_it_ran(tmp_path):
+    # AirSim steps whole 3-ms ticks: the steps run 0.102, 0.099, 0.099, ... s for 0.1 s (the
+    # same from every placement), and each is simulated at what it ran.
+    out = tmp_path / "fit.yaml"
+    plan = ("amplitudes=[0.5,1.0]", "hold_s=2.5", "rest_s=0.5", "settle_s=0.2")
+    with server(whole_ticks=True) as srv:
+        calibrate_command([endpoint(srv), f"out={out}", f"record={tmp_path / 'steps.csv'}", *plan])
+    periods = read_recording(tmp_path / "steps.csv")[0].periods
+    assert {round(float(t), 6) for t in periods} == {0.099, 0.102}
+    node = OmegaConf.load(out)
+    for key in ("tau_xy", "a_xy_max", "tau_z", "a_down_max"):
+        assert node[key] == pytest.approx(SERVER[key], rel=0.01), key
+
+
 def test_calibrate_flies_the_first_listed_vehicle_and_refuses_a_list_that_is_none(tmp_path):
     out = tmp_path / "fit.yaml"
     with pytest.raises(ConfigError, match=r"^dynamics\.vehicles: must be null or a list of"):

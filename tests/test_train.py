@@ -389,6 +389,7 @@ def test_a_diverged_run_stops_at_once_with_its_checkpoints_from_before(
     # as initialised (last.pt), and no other run goes into its directory.
     last = load_checkpoint(run / "checkpoints" / "last.pt")
     assert all(torch.isfinite(v).all() for v in last["actor"].values())
+    assert last["counters"]["wall_time_s"] > 0  # the time it ran counts on in a resume
     with pytest.raises(ConfigError, match=r"holds a run already; resume=true continues it"):
         tiny_run(scenarios, run, "train.total_frames=2048")
     monkeypatch.undo()

@@ -233,6 +233,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
         deadline is not None and time.perf_counter() >= deadline
     )
     if resume_state is None or spent:
+        state.wall_time_s = time.perf_counter() - start  # what a resume counts on from
         save_checkpoint(run.ckpt_dir / "last.pt", checkpoint(run, state))
     every = cfg.train.eval_every_frames
     next_eval = (state.frames // every + 1) * every

@@ -180,15 +180,23 @@ class _Batch:
     """Episodes padded into one batch of N envs x D drones x K periods for VelocityDynamics."""
 
     def __init__(self, episodes: Sequence[Episode]) -> None:
-        periods = np.concatenate([ep.periods for ep in episodes])
-        self.period = float(np.median(periods))
-        if np.abs(periods - self.period).max() > 1e-3:
-            raise ConfigError(
-                "recording: episodes of different control periods "
-                f"({periods.min():g}..{periods.max():g} s); fit them separately"
-            )
         n, d = len(episodes), max(len(ep.vehicles) for ep in episodes)
         k = max(ep.steps for ep in episodes)
+        # Each step is simulated at its own period: a simulator that runs whole physics ticks
+        # steps 0.102 s, 0.099 s, ... for 0.1 s, the same from every reset. The episodes must
+        # agree on it step by step (within 1 ms).
+        table = np.full((n, k), np.nan)
+        for i, ep in enumerate(episodes):
+            table[i, : ep.steps] = ep.periods
+        self.periods = [float(x) for x in np.nanmedian(table, axis=0)]
+        spread = np.nanmax(np.abs(table - np.asarray(self.periods)), axis=0)
+        if spread.max() > 1e-3:
+            at = int(spread.argmax())
+            raise ConfigError(
+                f"recording: episodes of different control periods at step {at + 1} "
+                f"({np.nanmin(table[:, at]):g}..{np.nanmax(table[:, at]):g} s); fit them "
+                "separately"
+            )
         self.start_p, self.start_v = torch.zeros(n, d, 3), torch.zeros(n, d, 3)
         self.max_speed = torch.full((n, d), math.inf)
         self.commands = torch.zeros(k, n, d, 3)
@@ -214,8 +222,8 @@ class _Batch:
             self.start_p, self.start_v, self.max_speed,
         )  # fmt: skip
         out = []
-        for cmd in self.commands:
-            model.advance(cmd, self.period)
+        for cmd, period in zip(self.commands, self.periods, strict=True):
+            model.advance(cmd, period)
             out.append(model.velocity)
         return torch.stack(out).double()
 

@@ -617,6 +617,7 @@ class AirSimClient:
         are cleared by it: :meth:`take_control` again."""
         self.call("reset", "resetting the simulation", self._api.reset)
         self._moves.clear()  # the reset ended them
+        self._contacts.clear()  # a contact after it is new, whatever its time_stamp
 
     def take_control(self, name: str) -> None:
         """API control on and armed (again after any simulator ``reset``)."""

@@ -13,9 +13,10 @@ endpoint (N = 1: an env batch of several simulators is a TorchRL ``ParallelEnv``
   drone's state and collision flag are read. The sim time that passed is measured from the state
   timestamps; off by more than ``step_tolerance_s`` it is an error or a logged warning
   (``on_time_mismatch``), never silent. AirSim ends a continue at the first physics tick at or
-  past its time (3-ms ticks: 0.102 s for 0.1 s), so each step asks for the period less what
-  the episode's clock has run over so far: the sim clock keeps to ``steps x period`` within a
-  tick instead of drifting by the overshoot every step.
+  past its time (3-ms ticks: 0.102 s for 0.1 s), so each step asks for the time to the env's
+  clock (the period, less what the sim clock ran over, or more where it fell behind): the sim
+  clock keeps to ``steps x period`` within a tick instead of drifting by the overshoot every
+  step.
 - ``reset``: the simulation is reset (every vehicle at rest at its spawn point), paused again,
   each drone given API control and armed again (a reset clears both) and placed at its start
   (ENU world -> NED world -> the vehicle's own spawn-relative frame, spawn points from the
@@ -225,7 +226,7 @@ class AirSimDynamics(DroneDynamics):
             self.client.move_velocity(name, velocity, period + self.move_margin_s)
         before, what = self._timestamp_ns, f"the drones after a step of {period:g} s"
         self._due_ns += round(period * 1e9)
-        ask = max((self._due_ns - before) / 1e9, 0.5 * period)  # less the clock's overshoot
+        ask = max((self._due_ns - before) / 1e9, 0.5 * period)  # to the env's clock
         self._run(ask, period, what)
         hits = self.collided
         for _ in range(TOP_UPS):  # a collision any read reports counts (reported once)
