@@ -60,6 +60,15 @@ def check_writable_dir(path: str | os.PathLike, field: str) -> Path:
     return path
 
 
+def refuse_run_dir(path: str | os.PathLike, field: str, why: str) -> None:
+    """A one-line :class:`ConfigError` naming ``field`` where ``path`` is a training run's own
+    folder (its ``config.yaml`` and ``checkpoints/``); ``why`` says what writing there would
+    do to the run."""
+    path = Path(path)
+    if (path / "config.yaml").is_file() and (path / "checkpoints").is_dir():
+        raise ConfigError(f"{field}: {path} is a training run's directory; {why}")
+
+
 def check_writable_file(path: str | os.PathLike, field: str) -> Path:
     """``path`` as a file that can be written (made, or replaced): not a folder, in a folder
     that :func:`check_writable_dir` accepts; a one-line :class:`ConfigError` naming ``field``

@@ -352,6 +352,14 @@ def test_bad_input_is_one_line_and_writes_nothing(run, tmp_path, monkeypatch):
         assert _one_line(e) == f"out_dir: cannot write to {where}: {reason}"
         with pytest.raises(ConfigError, match=f"^out_dir: cannot write to {where}: "):
             evaluate_run(run, out_dir=where, plots=False)
+    before = sorted(p.name for p in Path(run).iterdir())
+    with pytest.raises(ConfigError) as e:  # the files would mix with the run's own
+        export_run(run, out_dir=run)
+    assert _one_line(e) == (
+        f"out_dir: {run} is a training run's directory; the export's files would mix with the "
+        "run's (choose a folder of its own, e.g. <run>/export/NAME)"
+    )
+    assert sorted(p.name for p in Path(run).iterdir()) == before
     assert not out.exists()
 
 

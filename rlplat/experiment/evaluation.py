@@ -56,7 +56,7 @@ from rlplat.experiment.schema import (
     validate_dynamics_swap,
     validate_evaluate_config,
 )
-from rlplat.io import atomic_write_text, check_writable_dir, sha256_bytes
+from rlplat.io import atomic_write_text, check_writable_dir, refuse_run_dir, sha256_bytes
 from rlplat.scenarios import SPLITS, ScenarioSet
 
 log = logging.getLogger(__name__)
@@ -374,11 +374,8 @@ def evaluate_run(
     if out_dir is None:
         suffix = f"-{cfg.dynamics.name}" if swapped else ""
         out_dir = evaluations_dir(run_dir, eval_dir) / f"{split}-{name}{suffix}"
-    if (Path(out_dir) / "config.yaml").is_file() and (Path(out_dir) / "checkpoints").is_dir():
-        raise ConfigError(
-            f"out_dir: {out_dir} is a training run's directory; its summary.json would be "
-            "replaced by the evaluation's (choose a folder of its own, e.g. <run>/eval/NAME)"
-        )
+    refuse_run_dir(out_dir, "out_dir", "its summary.json would be replaced by the "
+                   "evaluation's (choose a folder of its own, e.g. <run>/eval/NAME)")  # fmt: skip
     out_dir = check_writable_dir(out_dir, "out_dir")
     summary_path = run_dir / "summary.json"
     run_summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}

@@ -76,7 +76,13 @@ from rlplat.experiment.evaluation import (
 )
 from rlplat.experiment.factory import build_eval_env, require_scenarios, resolve_scenarios
 from rlplat.experiment.schema import validate_export_config
-from rlplat.io import atomic_write_bytes, atomic_write_text, check_writable_dir, sha256_bytes
+from rlplat.io import (
+    atomic_write_bytes,
+    atomic_write_text,
+    check_writable_dir,
+    refuse_run_dir,
+    sha256_bytes,
+)
 from rlplat.scenarios import SPLITS
 
 log = logging.getLogger(__name__)
@@ -521,6 +527,8 @@ def export_run(
         src = controller_source(Path(controller), out_dir, scenarios_dir)
     else:
         src = run_source(Path(run_dir), ckpt, out_dir, scenarios_dir)
+    refuse_run_dir(src.out_dir, "out_dir", "the export's files would mix with the run's "
+                   "(choose a folder of its own, e.g. <run>/export/NAME)")  # fmt: skip
     check_writable_dir(src.out_dir, "out_dir")
     scenarios = resolve_scenarios(src.cfg, src.scenarios_dir)
     same_set = check_scenarios(
