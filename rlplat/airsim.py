@@ -14,8 +14,9 @@ Verbs:
                                     replay a recorded episode's commands through the embedded
                                     dynamics; per-step position error
     sim2sim run_dir=DIR dynamics.endpoints=[HOST:PORT,...] [split=test] [reference=NAME]
-                                    the run's policy on its embedded dynamics and on the
-                                    simulator, compared per scenario
+            [reference_tick=S]      the run's policy on its embedded dynamics (stepped in
+                                    whole physics ticks of S s, as AirSim steps: 0.003) and
+                                    on the simulator, compared per scenario
 """
 
 from __future__ import annotations

@@ -371,6 +371,31 @@ def test_sim2sim_on_the_servers_constants_agrees_and_reports_per_scenario(tiny_r
     assert float(table.splitlines()[-2].split()[-1]) > 10 * max(same, 1e-3)
 
 
+@pytest.mark.slow
+def test_sim2sim_against_whole_physics_ticks_agrees_with_a_reference_stepped_in_ticks(
+    tiny_run_dir, tmp_path
+):
+    # A simulator that runs whole 3-ms ticks (as AirSim does) flies 0.102 s, 0.099 s, ... a
+    # step: a reference that flies 0.1 s parts from it by millimetres a step, one that flies
+    # the same ticks (reference_tick) agrees as with the exact server.
+    same = ["reference.drag_xy=0", "reference.drag_z=0", "reference.physics_dt=0.003"]
+    summaries = {}
+    with TestServer(SETTINGS, whole_ticks=True) as srv:
+        for name, extra in (("period", []), ("ticks", ["reference_tick=0.003"])):
+            out = tmp_path / name
+            sim2sim_command([f"run_dir={tiny_run_dir}", endpoint(srv), f"out={out}",
+                             "record=false", *same, *extra])  # fmt: skip
+            summaries[name] = json.loads((out / "summary.json").read_text())
+    period, ticks = summaries["period"], summaries["ticks"]
+    assert period["reference_tick"] is None and ticks["reference_tick"] == 0.003
+    assert ticks["outcomes_differing"] == 0 and ticks["max_gap_m"] < 0.01
+    assert period["median_max_gap_m"] > 10 * max(ticks["median_max_gap_m"], 1e-4)
+    assert "stepped in whole ticks of 0.003 s" in (tmp_path / "ticks" / "report.md").read_text()
+    bad = r"^reference_tick: must be a finite number in \(0, 0\.1\], got 0\.5 \(the run's"
+    with pytest.raises(ConfigError, match=bad):
+        sim2sim_command([f"run_dir={tiny_run_dir}", endpoint(srv), "reference_tick=0.5"])
+
+
 def test_sim2sim_without_a_simulator_stops_before_the_embedded_leg(tiny_run_dir, tmp_path):
     # The reference leg flies first: a simulator not started must not cost its minutes.
     import socket

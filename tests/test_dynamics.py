@@ -7,7 +7,14 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from rlplat.envs.dynamics import DYNAMICS, QuadrotorDynamics, VelocityDynamics, _attitude_basis
+from rlplat.envs.dynamics import (
+    DYNAMICS,
+    QuadrotorDynamics,
+    VelocityDynamics,
+    WholeTicks,
+    _attitude_basis,
+)
+from rlplat.errors import ConfigError
 from rlplat.experiment.config import CONF_DIR
 
 PERIOD = 0.1  # s, control period used throughout
@@ -336,3 +343,36 @@ def test_quadrotor_long_random_rollout_is_stable():
     assert lowest >= 0.0
     assert peak_ratio < 1.1  # the controller keeps each axis near the clipped command
     assert peak_rate < 5.0
+
+
+def test_whole_ticks_fly_the_steps_airsim_flies_and_keep_to_the_envs_clock():
+    # AirSim runs a continue to the first 3-ms tick at or past its time, and each step asks for
+    # the time to the env's clock: 0.102 s, 0.099 s, 0.099 s, 0.102 s, ... in sum within a tick
+    # of steps x period. The wrapped model flies exactly those periods, nothing else changes.
+    n, d = 3, 2
+    start = torch.tensor([[[0.0, 0.0, 10.0], [5.0, -2.0, 12.0]]]).expand(n, d, 3)
+    speed = torch.full((n, d), 4.0)
+    command = torch.tensor([[[3.0, -4.0, 1.0], [-2.0, 1.0, -0.5]]]).expand(n, d, 3)
+    everyone = torch.ones(n, dtype=torch.bool)
+    ticked = WholeTicks(VelocityDynamics(num_envs=n, num_drones=d, physics_dt=0.003), 0.003)
+    plain = VelocityDynamics(num_envs=n, num_drones=d, physics_dt=0.003)
+    for model in (ticked, plain):
+        model.reset(everyone, start, torch.zeros_like(start), speed)
+    flown = []
+    for step in range(1, 32):
+        ticked.advance(command, 0.1)
+        flown.append(ticked.last_advance_s)
+        plain.advance(command, flown[-1])
+        assert abs(sum(flown) - step * 0.1) < 0.003 + 1e-9
+        assert torch.equal(ticked.position, plain.position)  # inner's state, read through
+    assert flown[:4] == [pytest.approx(t) for t in (0.102, 0.099, 0.099, 0.102)]
+    assert {round(t, 6) for t in flown} == {0.099, 0.102}
+    # A reset of one env keeps the clock (the pattern goes on); a reset of all restarts it.
+    ticked.reset(torch.tensor([True, False, False]), start, torch.zeros_like(start), speed)
+    ticked.advance(command, 0.1)
+    assert ticked.last_advance_s == pytest.approx(0.099)  # to 3.2 s from 3.102 s
+    ticked.reset(everyone, start, torch.zeros_like(start), speed)
+    ticked.advance(command, 0.1)
+    assert ticked.last_advance_s == pytest.approx(0.102)
+    with pytest.raises(ConfigError, match="tick must be > 0"):
+        WholeTicks(plain, 0.0)

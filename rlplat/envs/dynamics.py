@@ -22,6 +22,9 @@ Models (registry ``DYNAMICS``):
   modelled on simple_flight (velocity -> tilt -> body rate -> rotor thrust).
 - ``airsim``: ``rlplat.envs.airsim.dynamics.AirSimDynamics``, the drones of one env flown in an
   AirSim-protocol simulator over RPC, in lock step (imported on first use).
+
+``WholeTicks`` wraps a model so that each step flies whole physics ticks, as AirSim's clock
+does (a sim-to-sim reference).
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ import importlib
 import logging
 import math
 from collections.abc import Iterator, Mapping
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -458,6 +462,53 @@ class QuadrotorDynamics(DroneDynamics):
         q_dot = self._quat_rate @ (q.unsqueeze(1) * self._omega.unsqueeze(0)).view(12, -1)
         self._q = torch.add(q, q_dot, alpha=dt)
         self._p, self._v = _ground(torch.add(self._p, v, alpha=dt), v, self._floor)
+
+
+class WholeTicks:
+    """An embedded model stepped in whole physics ticks, as AirSim steps.
+
+    AirSim ends a ``simContinueForTime`` at the first physics tick at or past its time, and
+    ``dynamics=airsim`` asks each step for the time that brings the sim clock to the env's
+    (``steps x period`` since the reset, at least half a period): with 3-ms ticks a 0.1-s step
+    flies 0.102 s, then 0.099 s, 0.099 s, 0.102 s, ... Wrapped around ``inner``, each
+    ``advance(command, period)`` asks and flies the same way: the first whole ``tick`` at or
+    past that time, in one ``inner.advance``. That way an embedded reference flies the steps a
+    simulator flew (``python -m rlplat.airsim sim2sim ... reference_tick=0.003``).
+
+    The clock restarts when every env is reset at once (an evaluation's wave; one env per
+    simulator on AirSim). An env reset alone keeps the others' clock: its steps still keep
+    within a tick of its own time, in another phase of the pattern.
+
+    Everything else (``position``, ``velocity``, ``max_speed``, ``reset``...) is ``inner``'s.
+    ``last_advance_s`` is the time the last step flew.
+    """
+
+    def __init__(self, inner: DroneDynamics, tick: float) -> None:
+        _require_positive(tick=tick)
+        self.inner = inner
+        self.tick_ns = max(1, round(tick * 1e9))
+        self._due_ns = self._clock_ns = 0  # the env's time and the ticks flown since the reset
+        self.last_advance_s = float("nan")
+
+    def __getattr__(self, name: str) -> Any:  # what the env reads of the model: inner's
+        if name == "inner" or name.startswith("__"):  # a copy under construction has no inner
+            raise AttributeError(name)
+        return getattr(self.inner, name)
+
+    def reset(self, mask: Tensor, position: Tensor, velocity: Tensor, max_speed: Tensor) -> None:
+        self.inner.reset(mask, position, velocity, max_speed)
+        if bool(mask.all()):
+            self._due_ns = self._clock_ns = 0
+
+    def advance(self, command: Tensor, period: float) -> None:
+        if not period > 0:
+            raise ValueError(f"period must be > 0, got {period!r}")
+        self._due_ns += round(period * 1e9)
+        ask = max(self._due_ns - self._clock_ns, round(0.5 * period * 1e9))
+        flown = -(-ask // self.tick_ns) * self.tick_ns  # the first whole tick at or past it
+        self.inner.advance(command, flown / 1e9)
+        self._clock_ns += flown
+        self.last_advance_s = flown / 1e9
 
 
 class Registry(Mapping[str, type[DroneDynamics]]):

@@ -360,7 +360,7 @@ def replay_command(args: Sequence[str]) -> str:
 
 SIM2SIM_OPTIONS = (
     "run_dir", "split", "ckpt", "out", "reference", "scenarios_dir", "attackers", "device",
-    "record",
+    "record", "reference_tick",
 )  # fmt: skip
 
 
@@ -406,6 +406,7 @@ def sim2sim_command(args: Sequence[str]) -> str:
         attackers=attackers,
         device=str(options.get("device", "cpu")),
         record=bool(options.get("record", True)),
+        reference_tick=options.get("reference_tick"),
         command=shlex.join(["python", "-m", "rlplat.airsim", "sim2sim", *args]),
     )
     s = result.summary

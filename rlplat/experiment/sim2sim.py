@@ -32,6 +32,7 @@ from omegaconf import DictConfig, OmegaConf
 from rlplat.agents.checkpoint import actor_from_state, load_checkpoint
 from rlplat.envs.airsim.client import check_simulators
 from rlplat.envs.airsim.recording import Recorder, write_recording_csv
+from rlplat.envs.dynamics import WholeTicks
 from rlplat.envs.pursuit import PursuitEnv
 from rlplat.errors import ConfigError
 from rlplat.eval.episodes import EpisodeResults, evaluate
@@ -43,6 +44,7 @@ from rlplat.experiment.evaluation import (
     load_run_config,
 )
 from rlplat.experiment.factory import build_env, eval_num_envs, resolve_scenarios
+from rlplat.experiment.rules import Num
 from rlplat.experiment.schema import validate_dynamics_swap
 from rlplat.io import atomic_write_text, check_writable_dir
 from rlplat.scenarios import SPLITS, ScenarioSet
@@ -98,18 +100,22 @@ def _fly(
     attackers: int | None,
     device: str,
     record: bool,
+    tick: float | None = None,
 ) -> _Leg:
-    """One leg: the run's env on ``node``'s dynamics, the checkpoint's actor, every scenario."""
+    """One leg: the run's env on ``node``'s dynamics, the checkpoint's actor, every scenario;
+    with ``tick``, the model stepped in whole ticks of that many seconds (:class:`WholeTicks`)."""
     cfg = copy.deepcopy(cfg)
     cfg.dynamics = OmegaConf.create(dict(node))
     n = len(scenarios.split(split))
     overrides: dict[str, Any] = {} if attackers is None else {"attackers": attackers}
-    if node["name"] == "airsim":
-        overrides["compile_step"] = False  # a step there is calls to the simulator
+    if node["name"] == "airsim" or tick is not None:
+        overrides["compile_step"] = False  # calls to the simulator; a clock kept in Python
     env = build_env(
         cfg, scenarios=scenarios, split=split, num_envs=eval_num_envs(cfg, n), device=device,
         scenario_order="sequential", **overrides,
     )  # fmt: skip
+    if tick is not None:
+        env.dynamics = WholeTicks(env.dynamics, tick)
     recorder = None
     try:
         check_policy_fits(state, cfg, env, path)
@@ -174,6 +180,7 @@ def sim2sim(
     attackers: int | None = None,
     device: str = "cpu",
     record: bool = True,
+    reference_tick: float | None = None,
     command: str | None = None,
 ) -> Sim2Sim:
     """Fly the run's policy on ``reference`` and on ``airsim``; compare per scenario.
@@ -189,6 +196,8 @@ def sim2sim(
         attackers: fly only the first this many attackers of each scenario.
         device: torch device of env and policy.
         record: write what the AirSim leg flew (one simulator only).
+        reference_tick: s, the reference flies each step in whole physics ticks of this
+            length, as AirSim does (its 3-ms ticks: 0.003); None: exactly the control period.
         command: the command line, for the report.
     """
     # Everything is checked before any work starts.
@@ -209,6 +218,10 @@ def sim2sim(
     validate_dynamics_swap(reference, run)
     if split not in SPLITS:
         raise ConfigError(f"split: unknown '{split}'; valid: {', '.join(SPLITS)}")
+    if reference_tick is not None:
+        problem = Num(gt=0, le=float(cfg.env.control_period))(reference_tick)
+        if problem:
+            raise ConfigError(f"reference_tick: {problem} (the run's env.control_period)")
     path = checkpoint_path(run_dir, ckpt)
     name = checkpoint_label(run_dir, ckpt, path)
     out_dir = Path(out_dir) if out_dir else run_dir / "eval" / f"sim2sim-{split}-{name}"
@@ -219,8 +232,8 @@ def sim2sim(
 
     # The two legs: the same scenarios, policy and config; only the dynamics differ.
     legs = {
-        leg: _fly(cfg, node, scenarios, split, state, path, attackers, device, record)
-        for leg, node in (("reference", reference), ("airsim", airsim))
+        leg: _fly(cfg, node, scenarios, split, state, path, attackers, device, record, tick)
+        for leg, node, tick in (("reference", reference, reference_tick), ("airsim", airsim, None))
     }
     rows = compare(legs["reference"], legs["airsim"])
     differ = [r["scenario_id"] for r in rows if r["outcome_differs"]]
@@ -232,6 +245,7 @@ def sim2sim(
         "scenarios": len(rows),
         "scenario_digest": scenarios.digest,
         "reference": reference,
+        "reference_tick": reference_tick,
         "airsim": airsim,
         "command": command,
         "reference_capture_rate": legs["reference"].results.capture_rate,
@@ -270,6 +284,8 @@ def report(summary: Mapping[str, Any], rows: list[dict[str, Any]]) -> str:
         f"- reference: {_node(s['reference'])}",
         f"- airsim: {_node(s['airsim'])}",
     ]
+    if s.get("reference_tick") is not None:
+        lines.insert(-1, f"  stepped in whole ticks of {s['reference_tick']:g} s, as AirSim steps")
     if s.get("command"):
         lines += ["", f"Command: `{s['command']}`"]
     lines += [
