@@ -387,3 +387,97 @@ def test_actor_average_folds_each_update_into_a_moving_average_and_is_checkpoint
     resumed = agent(0.25)
     resumed.load_state_dict(averaged.state_dict())
     assert all(torch.equal(a, b) for a, b in zip(weights(resumed.flown_actor), flown, strict=True))
+
+
+# Self-imitation ------------------------------------------------------------------------------
+
+
+def _imitating_agent(lr: float = 1e-2, every_episode: bool = True):
+    from torchrl.data import Bounded
+
+    from rlplat.agents.sac import NetSpec, SACAgent
+    from rlplat.agents.self_imitation import SelfImitation
+
+    torch.manual_seed(0)
+    net = NetSpec(4, 2, (16, 16), (16, 16), "relu", (1.0,) * 4, action_margin=0.2)
+    spec = Bounded(-1.0, 1.0, shape=(2,))
+    agent = SACAgent(net, spec, gamma=0.9, tau=0.1, actor_lr=1e-3, critic_lr=1e-3, alpha_lr=1e-3)
+    sil = SelfImitation(agent, num_envs=2, gamma=0.9, capacity=64, batch_size=4, lr=lr,
+                        every_episode=every_episode)  # fmt: skip
+    return agent, sil
+
+
+def _collected(steps: int, done_at: dict, captured: set, reward: float = 1.0):
+    """A (2, steps) collected batch; env e's episode ends at the steps done_at[e]."""
+    done = torch.zeros(2, steps, 1, dtype=torch.bool)
+    for e, ends in done_at.items():
+        done[e, ends] = True
+    caught = done.clone()
+    for e in range(2):
+        if e not in captured:
+            caught[e] = False
+    obs = torch.arange(2 * steps * 4, dtype=torch.float32).view(2, steps, 4)
+    return TensorDict(
+        {
+            "observation": obs,
+            "action": torch.full((2, steps, 2), 0.5),
+            "next": {"reward": torch.full((2, steps, 1), reward), "done": done,
+                     "captured": caught},
+        },
+        [2, steps],
+    )  # fmt: skip
+
+
+def test_self_imitation_keeps_episodes_with_their_returns_across_batches():
+    _, every = _imitating_agent()
+    every.observe(_collected(4, {1: [1]}, captured=set()))  # env 1's episode ends uncaught
+    assert every.size == 2 and every.episodes == 1
+    agent, sil = _imitating_agent(every_episode=False)  # the capturing episodes only
+    sil.observe(_collected(4, {1: [1]}, captured=set()))
+    assert sil.size == 0 and sil.episodes == 0
+    with torch.no_grad():
+        agent.loss.log_alpha.fill_(-60.0)  # no entropy bonus: the plain discounted return
+    sil.observe(_collected(4, {0: [2]}, captured={0}))  # env 0's: 4 + 3 steps, a capture
+    assert sil.episodes == 1 and sil.size == 7
+    expected = [sum(0.9**k for k in range(7 - t)) for t in range(7)]  # reward 1 a step
+    assert sil.ret[:7].tolist() == pytest.approx(expected)
+    # With one, each later step adds SAC's bonus alpha H(pi(. | s)), discounted as its reward
+    # (the entropy estimated from draws of the policy: the same draws here).
+    with torch.no_grad():
+        agent.loss.log_alpha.fill_(0.0)
+    obs, reward = sil.obs[:3], torch.ones(3)
+    torch.manual_seed(1)
+    got = sil.soft_return(obs, reward).tolist()
+    torch.manual_seed(1)
+    td = TensorDict({"observation": obs}, [3])
+    with torch.no_grad(), agent.loss.actor_network_params.to_module(agent.loss.actor_network):
+        dist = agent.loss.actor_network.get_dist(td)
+        bonus = (-dist.log_prob(dist.sample((sil.ENTROPY_DRAWS,))).mean(0)).tolist()
+    soft = [1 + 0.9 * (1 + bonus[1] + 0.9 * (1 + bonus[2])), 1 + 0.9 * (1 + bonus[2]), 1.0]
+    assert got == pytest.approx(soft, rel=1e-5) and got != pytest.approx([2.71, 1.9, 1.0])
+    first = torch.arange(16, dtype=torch.float32).view(4, 4)  # env 0's rows of the first batch
+    assert torch.equal(sil.obs[:4], first)
+    assert len(sil._open[0]) == 1 and len(sil._open[0][0][0]) == 1  # the next episode's step
+
+
+def test_self_imitation_pulls_the_actor_only_where_the_return_beat_the_critics():
+    agent, sil = _imitating_agent()
+    sil.observe(_collected(8, {0: [7]}, captured={0}, reward=-100.0))  # far below any value
+    before = [p.detach().clone() for p in agent.loss.actor_network_params.values(True, True)]
+    assert sil.step() == {"sil/better": 0.0}
+    after = list(agent.loss.actor_network_params.values(True, True))
+    assert all(torch.equal(a, b) for a, b in zip(before, after, strict=True))
+
+    agent, sil = _imitating_agent()
+    sil.observe(_collected(8, {0: [7]}, captured={0}, reward=100.0))  # far above
+    td = TensorDict({"observation": sil.obs[:8]}, [8])
+
+    def gap() -> float:
+        with torch.no_grad(), agent.loss.actor_network_params.to_module(agent.loss.actor_network):
+            taken = agent.loss.actor_network.get_dist(td).deterministic_sample
+        return float((taken - 0.5).abs().max())
+
+    start = gap()
+    for _ in range(100):
+        assert sil.step()["sil/better"] == 1.0
+    assert gap() < 0.1 < start

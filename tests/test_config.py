@@ -532,6 +532,8 @@ SAC_PAPER_KEPT = {
     "evader_weight": 1.0,
     "demonstrations": [],
     "demonstration_repeat": 4,
+    "self_imitation": 0.0,
+    "self_imitation_every": 2,
 }
 
 

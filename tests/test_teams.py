@@ -755,3 +755,18 @@ def test_a_lone_checkpoint_starts_each_seat_of_a_team_run(
         tiny_run(team_sets[1, 1], tmp_path / "y", f"init_from={summary['run_dir']}")
     with pytest.raises(ConfigError, match=r"^init_from: .* trained with drone.learner=attacker"):
         tiny_run(team_sets[1, 1], tmp_path / "z", "drone=defender_v1", f"init_from={lone}")
+
+
+@pytest.mark.parametrize(
+    ("team", "overrides", "learners"),
+    [((2, 1), [], "2 attackers"), ((1, 2), ["drone=defender_v1"], "2 defenders")],
+)
+def test_self_imitation_of_a_team_of_learners_is_refused_before_any_work(
+    team_sets, tmp_path, tiny_run, team, overrides, learners
+):
+    with pytest.raises(ConfigError, match=rf"^algo\.self_imitation: .* team of {learners} "):
+        tiny_run(team_sets[team], tmp_path / "run", "algo.self_imitation=1e-4", *overrides)
+    assert not (tmp_path / "run").exists()
+    if team == (2, 1):  # the set flown by its first attacker alone is a lone learner: it trains
+        tiny_run(team_sets[team], tmp_path / "one", "algo.self_imitation=1e-4", "env.attackers=1")
+        assert (tmp_path / "one" / "checkpoints" / "best.pt").is_file()

@@ -46,6 +46,7 @@ from rlplat.agents.checkpoint import (
 from rlplat.agents.plays import AimPlay, Plays, load_plays
 from rlplat.agents.policies import REFERENCE, NoisyPolicy, make_scripted_policy
 from rlplat.agents.sac import NetSpec, SACAgent, actor_body, make_replay_buffer, net_spec
+from rlplat.agents.self_imitation import SelfImitation
 from rlplat.agents.transitions import replay_rows
 from rlplat.envs.pursuit import ROLES, PursuitEnv, flown_attackers
 from rlplat.errors import ConfigError, DivergenceError
@@ -195,6 +196,10 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     own_policy = resume_state is not None or init is not None
     random_frames = 0 if own_policy or scripted_start else algo.init_random_frames
     collector = make_collector(train_env, agent.collect_policy, algo, random_frames, device)
+    imitation = None
+    if algo.self_imitation > 0:
+        imitation = SelfImitation(agent, num_envs=algo.num_envs, gamma=algo.gamma,
+                                  lr=algo.self_imitation, device=device)  # fmt: skip
 
     # Scripted start
     start = time.perf_counter() - state.wall_time_s
@@ -245,6 +250,8 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
             t_collected = time.perf_counter()
             state.frames += batch.numel()
             buffer.extend(replay(batch, env.group, algo))
+            if imitation is not None:
+                imitation.observe(batch)
             values = episode_metrics(batch, list(env.reward_fn.weights))
 
             # Optimization: the buffer holds one transition per learning drone and frame.
@@ -254,6 +261,14 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
                 while update_credit >= 1.0:
                     with held_actor(agent, state.updates < algo.actor_warmup_updates):
                         losses.append(agent.update_from(buffer))
+                    if (
+                        imitation is not None
+                        and state.updates >= algo.actor_warmup_updates
+                        and state.updates % algo.self_imitation_every == 0
+                    ):
+                        imitated = imitation.step()
+                        if imitated:
+                            values.update(imitated)
                     agent.average_actor()
                     update_credit -= 1.0
                     state.updates += 1
@@ -328,8 +343,12 @@ def checked_start(cfg: DictConfig, run_dir: Path | None, field: str = "hydra.run
     cfg = with_absolute_paths(cfg)  # hydra.job.chdir=true moves the job, not its paths
     scenarios = resolve_scenarios(cfg, cfg.scenarios_dir)
     require_scenarios(scenarios, SPLITS, "training")  # it validates, and tests at its end
-    flown_attackers(cfg.env.attackers, scenarios)
+    attackers = flown_attackers(cfg.env.attackers, scenarios)
     network_defenders(scenarios, cfg.algo.evader_weight)  # both kinds where they are weighted
+    learners = attackers if cfg.drone.learner == "attacker" else scenarios.defenders
+    if cfg.algo.self_imitation > 0 and learners > 1:
+        raise ConfigError(f"algo.self_imitation: a lone learner's option; this run trains a "
+                          f"team of {learners} {cfg.drone.learner}s (set it to 0)")  # fmt: skip
     if cfg.scenarios_dir is not None:
         cfg = with_set_scenario(cfg, scenarios)
     config = OmegaConf.to_container(cfg, resolve=True)  # its paths absolute already

@@ -1,0 +1,143 @@
+"""Self-imitation: the actor also learns the actions of its own episodes where they did better
+than its critics expected (Oh et al., "Self-Imitation Learning", ICML 2018).
+
+SAC learns from every transition through its critics, which must first learn that a long chase
+ends in a capture; a rare capture, tens of seconds after the actions that made it, moves them
+little. :class:`SelfImitation` keeps the episodes the collector flies, each step with its
+discounted return to the episode's end (with SAC's entropy bonus, as the critics' soft values
+hold it), and in its own step pulls the actor's deterministic action towards the action
+taken, weighted by how much that return exceeds the critics' value of the action,
+``max(G - min_i Q_i(s, a), 0)``: only where the episode did better than the critics believe
+is anything imitated. Every episode is kept, not only the capturing ones: a
+return drawn among captures alone exceeds the critics' expectation almost everywhere (the
+critics average over the episodes that went on to miss).
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+from torch import Tensor
+
+
+class SelfImitation:
+    """The store of episodes and the imitation step.
+
+    Args:
+        agent: the :class:`rlplat.agents.sac.SACAgent` whose actor imitates (its loss's
+            actor parameters; its critics give the values).
+        num_envs: the collector's envs (episodes are gathered per env across batches).
+        gamma: the discount of the returns.
+        capacity: transitions kept (the oldest are replaced).
+        batch_size: transitions per imitation step.
+        lr: the imitation step's Adam learning rate (its own optimiser).
+        every_episode: keep every episode (False: only those that end in a capture).
+        device: where the store lives.
+    """
+
+    def __init__(
+        self,
+        agent,
+        *,
+        num_envs: int,
+        gamma: float,
+        capacity: int = 200_000,
+        batch_size: int = 256,
+        lr: float = 1e-4,
+        every_episode: bool = True,
+        device: torch.device | str = "cpu",
+    ) -> None:
+        self.agent, self.gamma, self.batch_size = agent, float(gamma), int(batch_size)
+        self.every_episode = bool(every_episode)
+        net = agent.net
+        self.obs = torch.zeros(capacity, net.obs_dim, device=device)
+        self.action = torch.zeros(capacity, net.action_dim, device=device)
+        self.ret = torch.zeros(capacity, device=device)
+        self.size = self.pos = 0
+        self.episodes = 0
+        self._open: list[list[tuple[Tensor, Tensor, Tensor]]] = [[] for _ in range(num_envs)]
+        params = agent.loss.actor_network_params.values(True, True)
+        self.optimizer = torch.optim.Adam(params, lr)
+
+    def observe(self, batch) -> None:
+        """Gather a collected ``(envs, T)`` batch's steps; store the episodes that ended in it
+        (with ``every_episode=False`` those that ended in a capture)."""
+        obs, action = batch["observation"], batch["action"]
+        reward = batch["next", "reward"].reshape(obs.shape[:2])
+        done = batch["next", "done"].reshape(obs.shape[:2])
+        captured = batch["next", "captured"].reshape(obs.shape[:2])
+        steps = obs.shape[1]
+        for e in range(obs.shape[0]):
+            start = 0
+            for t in done[e].nonzero().flatten().tolist():
+                self._open[e].append((obs[e, start : t + 1], action[e, start : t + 1],
+                                      reward[e, start : t + 1]))  # fmt: skip
+                if self.every_episode or bool(captured[e, t]):
+                    self._store(self._open[e])
+                self._open[e], start = [], t + 1
+            if start < steps:
+                self._open[e].append((obs[e, start:], action[e, start:], reward[e, start:]))
+
+    def _store(self, chunks: list[tuple[Tensor, Tensor, Tensor]]) -> None:
+        obs, action, reward = (torch.cat(x) for x in zip(*chunks, strict=True))
+        ret = self.soft_return(obs, reward).to(self.ret)
+        n, cap = len(ret), len(self.ret)
+        rows = (self.pos + torch.arange(n)) % cap
+        self.obs[rows], self.action[rows], self.ret[rows] = obs, action, ret
+        self.pos, self.size = (self.pos + n) % cap, min(cap, self.size + n)
+        self.episodes += 1
+
+    #: Draws of the policy per state that estimate its entropy.
+    ENTROPY_DRAWS = 8
+
+    @torch.no_grad()
+    def soft_return(self, obs: Tensor, reward: Tensor) -> Tensor:
+        """An episode's discounted return to its end, each step's, with the entropy bonus the
+        critics' soft values hold: ``G_t = r_t + gamma (G_t+1 + alpha H(pi(. | s_t+1)))``
+        (SAC's target along the episode, the entropy estimated from draws of the policy; it
+        and ``alpha`` as they are now). Without the bonus, a return falls short of the
+        critics' value by its sum over the horizon, whatever the episode did."""
+        loss = self.agent.loss
+        td = TensorDict({"observation": obs}, [len(obs)])
+        with loss.actor_network_params.to_module(loss.actor_network, preserve_module_state=False):
+            dist = loss.actor_network.get_dist(td)
+        draws = dist.sample((self.ENTROPY_DRAWS,))
+        entropy = -dist.log_prob(draws).mean(0)
+        bonus = (loss.log_alpha.exp() * entropy).tolist()
+        rewards, out = reward.tolist(), [0.0] * len(reward)
+        acc = 0.0
+        for t in range(len(rewards) - 1, -1, -1):
+            after = self.gamma * (acc + bonus[t + 1]) if t + 1 < len(rewards) else 0.0
+            acc = out[t] = rewards[t] + after
+        return torch.tensor(out)
+
+    def step(self) -> dict[str, float]:
+        """One imitation step on a batch drawn from the store; empty before there is one."""
+        if self.size < self.batch_size:
+            return {}
+        loss = self.agent.loss
+        rows = torch.randint(self.size, (self.batch_size,), device=self.obs.device)
+        td = TensorDict(
+            {"observation": self.obs[rows], "action": self.action[rows]}, [self.batch_size]
+        )
+        with torch.no_grad():  # both critics at once, as SACLoss evaluates them
+            q = loss._vmap_qnetworkN0(td.clone(), loss.qvalue_network_params)
+            value = q.get("state_action_value").squeeze(-1).amin(0)
+        advantage = (self.ret[rows] - value).clamp(min=0.0)
+        better = advantage > 0
+        if not bool(better.any()):
+            return {"sil/better": 0.0}
+        with loss.actor_network_params.to_module(loss.actor_network, preserve_module_state=False):
+            dist = loss.actor_network.get_dist(td)
+        taken = dist.deterministic_sample.clamp(-1.0, 1.0)
+        error = (taken - td["action"]).pow(2).sum(-1)
+        objective = (advantage * error).sum() / advantage.sum()
+        self.optimizer.zero_grad(set_to_none=True)
+        objective.backward()
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        return {
+            "sil/loss": float(objective.detach()),
+            "sil/better": float(better.float().mean()),
+            "sil/advantage": float(advantage[better].mean()),
+        }
