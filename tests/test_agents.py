@@ -407,22 +407,27 @@ def _imitating_agent(lr: float = 1e-2, every_episode: bool = True):
     return agent, sil
 
 
-def _collected(steps: int, done_at: dict, captured: set, reward: float = 1.0):
-    """A (2, steps) collected batch; env e's episode ends at the steps done_at[e]."""
+def _collected(
+    steps: int, done_at: dict, captured: set, reward: float = 1.0, truncated: set = frozenset()
+):
+    """A (2, steps) collected batch; env e's episode ends at the steps done_at[e], by itself
+    (terminated) unless e is in ``truncated``."""
     done = torch.zeros(2, steps, 1, dtype=torch.bool)
     for e, ends in done_at.items():
         done[e, ends] = True
-    caught = done.clone()
+    caught, ended = done.clone(), done.clone()
     for e in range(2):
         if e not in captured:
             caught[e] = False
+        if e in truncated:
+            ended[e] = False
     obs = torch.arange(2 * steps * 4, dtype=torch.float32).view(2, steps, 4)
     return TensorDict(
         {
             "observation": obs,
             "action": torch.full((2, steps, 2), 0.5),
             "next": {"reward": torch.full((2, steps, 1), reward), "done": done,
-                     "captured": caught},
+                     "terminated": ended, "truncated": done & ~ended, "captured": caught},
         },
         [2, steps],
     )  # fmt: skip
@@ -430,8 +435,10 @@ def _collected(steps: int, done_at: dict, captured: set, reward: float = 1.0):
 
 def test_self_imitation_keeps_episodes_with_their_returns_across_batches():
     _, every = _imitating_agent()
-    every.observe(_collected(4, {1: [1]}, captured=set()))  # env 1's episode ends uncaught
+    every.observe(_collected(4, {1: [1]}, captured=set()))  # env 1's ends uncaught: a crash
     assert every.size == 2 and every.episodes == 1
+    every.observe(_collected(4, {1: [3]}, captured=set(), truncated={1}))  # cut short: not kept
+    assert every.size == 2 and every.episodes == 1 and every._open[1] == []
     agent, sil = _imitating_agent(every_episode=False)  # the capturing episodes only
     sil.observe(_collected(4, {1: [1]}, captured=set()))
     assert sil.size == 0 and sil.episodes == 0
@@ -481,3 +488,22 @@ def test_self_imitation_pulls_the_actor_only_where_the_return_beat_the_critics()
     for _ in range(100):
         assert sil.step()["sil/better"] == 1.0
     assert gap() < 0.1 < start
+
+    # An actor whose mean lies in the margin beyond a bound (1.2 tanh(3) = 1.19) flies the
+    # bound: an action taken at the bound costs it nothing, one taken inside pulls it back.
+    for taken, pulled in ((1.0, False), (0.5, True)):
+        agent, sil = _imitating_agent()
+        sil.observe(_collected(8, {0: [7]}, captured={0}, reward=100.0))
+        sil.action[:8] = torch.tensor([taken, -taken])
+        params = agent.loss.actor_network_params
+        with torch.no_grad():  # the last layer: a constant mean (3, -3) and a constant spread
+            last = [k for k in params.keys(True, True) if k[-1] == "weight"][-1]
+            params[last].zero_()
+            params[(*last[:-1], "bias")][:2] = torch.tensor([3.0, -3.0])
+        before = [p.detach().clone() for p in params.values(True, True)]
+        out = sil.step()
+        moved = not all(
+            torch.equal(a, b) for a, b in zip(before, params.values(True, True), strict=True)
+        )
+        assert out["sil/better"] == 1.0 and moved == pulled
+        assert (out["sil/loss"] == 0.0) == (not pulled)

@@ -770,3 +770,9 @@ def test_self_imitation_of_a_team_of_learners_is_refused_before_any_work(
     if team == (2, 1):  # the set flown by its first attacker alone is a lone learner: it trains
         tiny_run(team_sets[team], tmp_path / "one", "algo.self_imitation=1e-4", "env.attackers=1")
         assert (tmp_path / "one" / "checkpoints" / "best.pt").is_file()
+        # critics that learn a shaped reward value other returns than the env's
+        shaped = r"^algo\.self_imitation: 0\.0001 compares .*; set algo\.potential_weight=0$"
+        with pytest.raises(ConfigError, match=shaped):
+            tiny_run(team_sets[1, 1], tmp_path / "shaped", "algo.self_imitation=1e-4",
+                     "algo.potential_weight=-5")  # fmt: skip
+        assert not (tmp_path / "shaped").exists()

@@ -8,9 +8,13 @@ discounted return to the episode's end (with SAC's entropy bonus, as the critics
 hold it), and in its own step pulls the actor's deterministic action towards the action
 taken, weighted by how much that return exceeds the critics' value of the action,
 ``max(G - min_i Q_i(s, a), 0)``: only where the episode did better than the critics believe
-is anything imitated. Every episode is kept, not only the capturing ones: a
-return drawn among captures alone exceeds the critics' expectation almost everywhere (the
-critics average over the episodes that went on to miss).
+is anything imitated.
+
+Every episode that ends by itself (a capture or a crash, ``terminated``) is kept, not only the
+capturing ones: a return drawn among captures alone exceeds the critics' expectation almost
+everywhere (the critics average over the episodes that went on to miss). An episode cut short
+(``truncated``: the time limit, or the defender's route flown) is not: its return stops where
+the critics' value goes on, and would beat it wherever the rest of the chase costs.
 """
 
 from __future__ import annotations
@@ -31,7 +35,7 @@ class SelfImitation:
         capacity: transitions kept (the oldest are replaced).
         batch_size: transitions per imitation step.
         lr: the imitation step's Adam learning rate (its own optimiser).
-        every_episode: keep every episode (False: only those that end in a capture).
+        every_episode: keep every episode that ends by itself (False: only captures).
         device: where the store lives.
     """
 
@@ -61,10 +65,11 @@ class SelfImitation:
 
     def observe(self, batch) -> None:
         """Gather a collected ``(envs, T)`` batch's steps; store the episodes that ended in it
-        (with ``every_episode=False`` those that ended in a capture)."""
+        by themselves (with ``every_episode=False`` those that ended in a capture)."""
         obs, action = batch["observation"], batch["action"]
         reward = batch["next", "reward"].reshape(obs.shape[:2])
         done = batch["next", "done"].reshape(obs.shape[:2])
+        terminated = batch["next", "terminated"].reshape(obs.shape[:2])
         captured = batch["next", "captured"].reshape(obs.shape[:2])
         steps = obs.shape[1]
         for e in range(obs.shape[0]):
@@ -72,7 +77,8 @@ class SelfImitation:
             for t in done[e].nonzero().flatten().tolist():
                 self._open[e].append((obs[e, start : t + 1], action[e, start : t + 1],
                                       reward[e, start : t + 1]))  # fmt: skip
-                if self.every_episode or bool(captured[e, t]):
+                kept = bool(captured[e, t]) or (self.every_episode and bool(terminated[e, t]))
+                if kept:
                     self._store(self._open[e])
                 self._open[e], start = [], t + 1
             if start < steps:
@@ -129,8 +135,13 @@ class SelfImitation:
             return {"sil/better": 0.0}
         with loss.actor_network_params.to_module(loss.actor_network, preserve_module_state=False):
             dist = loss.actor_network.get_dist(td)
-        taken = dist.deterministic_sample.clamp(-1.0, 1.0)
-        error = (taken - td["action"]).pow(2).sum(-1)
+        # The deterministic action before its clamp onto [-1, 1]: where the action taken is a
+        # bound, any action in the margin beyond it flies the same and costs nothing.
+        taken, flown = dist.deterministic_sample, td["action"]
+        gap = taken - flown
+        gap = torch.where(flown >= 1.0, gap.clamp(max=0.0), gap)
+        gap = torch.where(flown <= -1.0, gap.clamp(min=0.0), gap)
+        error = gap.pow(2).sum(-1)
         objective = (advantage * error).sum() / advantage.sum()
         self.optimizer.zero_grad(set_to_none=True)
         objective.backward()

@@ -346,9 +346,15 @@ def checked_start(cfg: DictConfig, run_dir: Path | None, field: str = "hydra.run
     attackers = flown_attackers(cfg.env.attackers, scenarios)
     network_defenders(scenarios, cfg.algo.evader_weight)  # both kinds where they are weighted
     learners = attackers if cfg.drone.learner == "attacker" else scenarios.defenders
-    if cfg.algo.self_imitation > 0 and learners > 1:
-        raise ConfigError(f"algo.self_imitation: a lone learner's option; this run trains a "
-                          f"team of {learners} {cfg.drone.learner}s (set it to 0)")  # fmt: skip
+    imitation = cfg.algo.self_imitation
+    if imitation > 0 and learners > 1:
+        raise ConfigError(f"algo.self_imitation: {imitation} is a lone learner's option; "
+                          f"this run trains a team of {learners} {cfg.drone.learner}s (set it "
+                          "to 0)")  # fmt: skip
+    if imitation > 0 and cfg.algo.potential_weight != 0:
+        raise ConfigError(f"algo.self_imitation: {imitation} compares the env's returns with "
+                          "critics that learn a shaped reward (algo.potential_weight="
+                          f"{cfg.algo.potential_weight}); set algo.potential_weight=0")  # fmt: skip
     if cfg.scenarios_dir is not None:
         cfg = with_set_scenario(cfg, scenarios)
     config = OmegaConf.to_container(cfg, resolve=True)  # its paths absolute already
