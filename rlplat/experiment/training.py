@@ -259,16 +259,11 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
                 update_credit += batch.numel() * algo.utd_ratio
                 losses = []
                 while update_credit >= 1.0:
-                    with held_actor(agent, state.updates < algo.actor_warmup_updates):
+                    held = state.updates < algo.actor_warmup_updates
+                    with held_actor(agent, held):
                         losses.append(agent.update_from(buffer))
-                    if (
-                        imitation is not None
-                        and state.updates >= algo.actor_warmup_updates
-                        and state.updates % algo.self_imitation_every == 0
-                    ):
-                        imitated = imitation.step()
-                        if imitated:
-                            values.update(imitated)
+                    if imitation and not held and state.updates % algo.self_imitation_every == 0:
+                        values.update(imitation.step())
                     agent.average_actor()
                     update_credit -= 1.0
                     state.updates += 1
