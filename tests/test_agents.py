@@ -392,7 +392,7 @@ def test_actor_average_folds_each_update_into_a_moving_average_and_is_checkpoint
 # Self-imitation ------------------------------------------------------------------------------
 
 
-def _imitating_agent(lr: float = 1e-2, every_episode: bool = True):
+def _imitating_agent(lr: float = 1e-2, every_episode: bool = True, bootstrap: bool = False):
     from torchrl.data import Bounded
 
     from rlplat.agents.sac import NetSpec, SACAgent
@@ -403,7 +403,7 @@ def _imitating_agent(lr: float = 1e-2, every_episode: bool = True):
     spec = Bounded(-1.0, 1.0, shape=(2,))
     agent = SACAgent(net, spec, gamma=0.9, tau=0.1, actor_lr=1e-3, critic_lr=1e-3, alpha_lr=1e-3)
     sil = SelfImitation(agent, num_envs=2, gamma=0.9, capacity=64, batch_size=4, lr=lr,
-                        every_episode=every_episode)  # fmt: skip
+                        every_episode=every_episode, bootstrap=bootstrap)  # fmt: skip
     return agent, sil
 
 
@@ -465,6 +465,37 @@ def test_self_imitation_keeps_episodes_with_their_returns_across_batches():
     first = torch.arange(16, dtype=torch.float32).view(4, 4)  # env 0's rows of the first batch
     assert torch.equal(sil.obs[:4], first)
     assert len(sil._open[0]) == 1 and len(sil._open[0][0][0]) == 1  # the next episode's step
+
+
+def test_self_imitation_bootstraps_an_episode_cut_short_with_the_critics_soft_value():
+    agent, sil = _imitating_agent(bootstrap=True)
+    with torch.no_grad():
+        agent.loss.log_alpha.fill_(-60.0)  # no entropy bonus: returns and values plain
+    batch = _collected(4, {0: [3], 1: [1]}, captured=set(), truncated={0})
+    batch["next", "observation"] = batch["observation"] + 100.0
+    torch.manual_seed(2)  # the draws of the policy that estimate the soft value
+    sil.observe(batch)  # env 0 cut short after 4 steps, env 1 crashed after 2: both kept
+    assert sil.episodes == 2 and sil.size == 6
+    cut = batch["next", "observation"][0, 3]
+    loss = agent.loss
+    torch.manual_seed(2)  # the same draws: the lower critic's mean over the policy's actions
+    with torch.no_grad(), loss.actor_network_params.to_module(loss.actor_network):
+        draws = loss.actor_network.get_dist(TensorDict({"observation": cut[None]}, [1])).sample(
+            (sil.ENTROPY_DRAWS,)
+        )
+        pairs = TensorDict({"observation": cut.expand(sil.ENTROPY_DRAWS, 4),
+                            "action": draws[:, 0]}, [sil.ENTROPY_DRAWS])  # fmt: skip
+        q = loss._vmap_qnetworkN0(pairs, loss.qvalue_network_params)
+        value = float(q.get("state_action_value").squeeze(-1).amin(0).mean())
+    assert float(sil.soft_value(cut[None])[0]) != value  # other draws, another estimate
+    # The cut episode's returns go on past its end with that value, discounted; the
+    # crash's stop at its end (sil.ret's rows: env 0's 4 steps, then env 1's 2).
+    expected = [sum(0.9**k for k in range(4 - t)) + 0.9 ** (4 - t) * value for t in range(4)]
+    assert sil.ret[:4].tolist() == pytest.approx(expected, rel=1e-5)
+    assert sil.ret[4:6].tolist() == pytest.approx([1.9, 1.0])
+    _, dropped = _imitating_agent(bootstrap=False)  # the default drops it
+    dropped.observe(batch)
+    assert dropped.episodes == 1 and dropped.size == 2
 
 
 def test_self_imitation_pulls_the_actor_only_where_the_return_beat_the_critics():

@@ -534,6 +534,7 @@ SAC_PAPER_KEPT = {
     "demonstration_repeat": 4,
     "self_imitation": 0.0,
     "self_imitation_every": 2,
+    "self_imitation_truncated": "drop",
 }
 
 

@@ -13,8 +13,11 @@ is anything imitated.
 Every episode that ends by itself (a capture or a crash, ``terminated``) is kept, not only the
 capturing ones: a return drawn among captures alone exceeds the critics' expectation almost
 everywhere (the critics average over the episodes that went on to miss). An episode cut short
-(``truncated``: the time limit, or the defender's route flown) is not: its return stops where
-the critics' value goes on, and would beat it wherever the rest of the chase costs.
+(``truncated``: the time limit, or the defender's route flown) is dropped by default: its
+return stops where the critics' value goes on, and would beat it wherever the rest of the
+chase costs. With ``bootstrap=True`` it is kept, its return closed at the cut by the critics'
+soft value of the state it was cut in (as SAC's own target closes a truncated step), so the
+store holds the misses as well as the captures.
 """
 
 from __future__ import annotations
@@ -36,6 +39,8 @@ class SelfImitation:
         batch_size: transitions per imitation step.
         lr: the imitation step's Adam learning rate (its own optimiser).
         every_episode: keep every episode that ends by itself (False: only captures).
+        bootstrap: keep the episodes cut short too, each return closed by the critics' soft
+            value of the state at the cut (with ``every_episode`` only).
         device: where the store lives.
     """
 
@@ -49,10 +54,12 @@ class SelfImitation:
         batch_size: int = 256,
         lr: float = 1e-4,
         every_episode: bool = True,
+        bootstrap: bool = False,
         device: torch.device | str = "cpu",
     ) -> None:
         self.agent, self.gamma, self.batch_size = agent, float(gamma), int(batch_size)
         self.every_episode = bool(every_episode)
+        self.bootstrap = self.every_episode and bool(bootstrap)
         net = agent.net
         self.obs = torch.zeros(capacity, net.obs_dim, device=device)
         self.action = torch.zeros(capacity, net.action_dim, device=device)
@@ -65,12 +72,14 @@ class SelfImitation:
 
     def observe(self, batch) -> None:
         """Gather a collected ``(envs, T)`` batch's steps; store the episodes that ended in it
-        by themselves (with ``every_episode=False`` those that ended in a capture)."""
+        by themselves (with ``every_episode=False`` those that ended in a capture; with
+        ``bootstrap`` those cut short too)."""
         obs, action = batch["observation"], batch["action"]
         reward = batch["next", "reward"].reshape(obs.shape[:2])
         done = batch["next", "done"].reshape(obs.shape[:2])
         terminated = batch["next", "terminated"].reshape(obs.shape[:2])
         captured = batch["next", "captured"].reshape(obs.shape[:2])
+        after = batch["next", "observation"] if self.bootstrap else None
         steps = obs.shape[1]
         for e in range(obs.shape[0]):
             start = 0
@@ -80,13 +89,18 @@ class SelfImitation:
                 kept = bool(captured[e, t]) or (self.every_episode and bool(terminated[e, t]))
                 if kept:
                     self._store(self._open[e])
+                elif self.bootstrap:  # cut short: the critics' value of where it was cut
+                    self._store(self._open[e], cut=after[e, t])
                 self._open[e], start = [], t + 1
             if start < steps:
                 self._open[e].append((obs[e, start:], action[e, start:], reward[e, start:]))
 
-    def _store(self, chunks: list[tuple[Tensor, Tensor, Tensor]]) -> None:
+    def _store(
+        self, chunks: list[tuple[Tensor, Tensor, Tensor]], cut: Tensor | None = None
+    ) -> None:
         obs, action, reward = (torch.cat(x) for x in zip(*chunks, strict=True))
-        ret = self.soft_return(obs, reward).to(self.ret)
+        tail = 0.0 if cut is None else float(self.soft_value(cut[None])[0])
+        ret = self.soft_return(obs, reward, tail).to(self.ret)
         n, cap = len(ret), len(self.ret)
         rows = (self.pos + torch.arange(n)) % cap
         self.obs[rows], self.action[rows], self.ret[rows] = obs, action, ret
@@ -97,12 +111,32 @@ class SelfImitation:
     ENTROPY_DRAWS = 8
 
     @torch.no_grad()
-    def soft_return(self, obs: Tensor, reward: Tensor) -> Tensor:
+    def soft_value(self, obs: Tensor) -> Tensor:
+        """The critics' soft value of states, ``E_a~pi[min_i Q_i(s, a) - alpha log pi(a | s)]``
+        (the value SAC's target closes a step with), over draws of the policy."""
+        loss, draws, n = self.agent.loss, self.ENTROPY_DRAWS, len(obs)
+        td = TensorDict({"observation": obs}, [n])
+        with loss.actor_network_params.to_module(loss.actor_network, preserve_module_state=False):
+            dist = loss.actor_network.get_dist(td)
+        actions = dist.sample((draws,))  # (draws, n, action)
+        log_prob = dist.log_prob(actions)
+        pairs = TensorDict(
+            {"observation": obs.expand(draws, *obs.shape).flatten(0, 1),
+             "action": actions.flatten(0, 1)},
+            [draws * n],
+        )  # fmt: skip
+        q = loss._vmap_qnetworkN0(pairs, loss.qvalue_network_params)
+        q = q.get("state_action_value").squeeze(-1).amin(0).view(draws, n)
+        return (q - loss.log_alpha.exp() * log_prob).mean(0)
+
+    @torch.no_grad()
+    def soft_return(self, obs: Tensor, reward: Tensor, tail: float = 0.0) -> Tensor:
         """An episode's discounted return to its end, each step's, with the entropy bonus the
         critics' soft values hold: ``G_t = r_t + gamma (G_t+1 + alpha H(pi(. | s_t+1)))``
         (SAC's target along the episode, the entropy estimated from draws of the policy; it
         and ``alpha`` as they are now). Without the bonus, a return falls short of the
-        critics' value by its sum over the horizon, whatever the episode did."""
+        critics' value by its sum over the horizon, whatever the episode did. ``tail`` is
+        the soft value after the last step (0 where the episode ended by itself)."""
         loss = self.agent.loss
         td = TensorDict({"observation": obs}, [len(obs)])
         with loss.actor_network_params.to_module(loss.actor_network, preserve_module_state=False):
@@ -113,7 +147,7 @@ class SelfImitation:
         rewards, out = reward.tolist(), [0.0] * len(reward)
         acc = 0.0
         for t in range(len(rewards) - 1, -1, -1):
-            after = self.gamma * (acc + bonus[t + 1]) if t + 1 < len(rewards) else 0.0
+            after = self.gamma * (acc + bonus[t + 1]) if t + 1 < len(rewards) else self.gamma * tail
             acc = out[t] = rewards[t] + after
         return torch.tensor(out)
 

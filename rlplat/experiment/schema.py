@@ -138,6 +138,8 @@ INIT_POLICIES = ("random", *SCRIPTED)
 POLICIES = ("checkpoint", *ARTIFACTS, *SCRIPTED)
 #: Env outputs a learner's potential-based shaping may read (``algo.potential_key``).
 POTENTIAL_KEYS = ("distance",)
+#: What self-imitation does with an episode cut short (``algo.self_imitation_truncated``).
+TRUNCATED_EPISODES = ("drop", "bootstrap")
 #: torchrl's critic regression losses.
 LOSS_FUNCTIONS = ("l2", "l1", "smooth_l1")
 #: wandb modes that ``logger.mode`` may set (others are read from ``WANDB_MODE``).
@@ -215,6 +217,7 @@ TRAIN_RULES: dict[str, Rule] = {
     "algo.demonstration_repeat": COUNT,
     "algo.self_imitation": Num(ge=0),
     "algo.self_imitation_every": COUNT,
+    "algo.self_imitation_truncated": Choice(TRUNCATED_EPISODES),
     "algo.compile": flag,
     "drone.name": Text(),
     "drone.learner": Choice(ROLES),
@@ -679,6 +682,7 @@ ADDED_KEYS: dict[str, Any] = {
     "algo.demonstration_repeat": 4,
     "algo.self_imitation": 0.0,
     "algo.self_imitation_every": 2,
+    "algo.self_imitation_truncated": "drop",
     "init_from": None,
     "train.keep_checkpoints": False,
     "dynamics.vehicles": None,

@@ -198,8 +198,11 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> dict[str, Any]:
     collector = make_collector(train_env, agent.collect_policy, algo, random_frames, device)
     imitation = None
     if algo.self_imitation > 0:
-        imitation = SelfImitation(agent, num_envs=algo.num_envs, gamma=algo.gamma,
-                                  lr=algo.self_imitation, device=device)  # fmt: skip
+        bootstrap = algo.self_imitation_truncated == "bootstrap"
+        imitation = SelfImitation(
+            agent, num_envs=algo.num_envs, gamma=algo.gamma, lr=algo.self_imitation,
+            bootstrap=bootstrap, device=device,
+        )  # fmt: skip
 
     # Scripted start
     start = time.perf_counter() - state.wall_time_s
