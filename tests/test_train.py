@@ -453,6 +453,40 @@ def test_correlated_noise_trains_reproducibly_and_explores_otherwise(scenarios, 
     assert not all(torch.equal(agents["a"][k], agents["white"][k]) for k in agents["a"])
 
 
+def test_self_imitation_bootstrapping_learns_from_the_episodes_the_time_limit_cuts(
+    scenarios, tmp_path, tiny_run, monkeypatch
+):
+    """Every episode of a 3-s time limit is cut short: dropped, they leave self-imitation
+    nothing to learn from; bootstrapped, they fill its store and it steps."""
+    from rlplat.agents.self_imitation import SelfImitation
+
+    seen, steps = [], []
+    observe, step = SelfImitation.observe, SelfImitation.step
+
+    def observed(self, batch):
+        seen.append(self)
+        return observe(self, batch)
+
+    def stepped(self):
+        steps.append(step(self))
+        return steps[-1]
+
+    monkeypatch.setattr(SelfImitation, "observe", observed)
+    monkeypatch.setattr(SelfImitation, "step", stepped)
+    common = ("algo.self_imitation=1e-3", "algo.self_imitation_every=1",
+              "algo.actor_warmup_updates=0", "train.total_frames=640")  # fmt: skip
+    for truncated in ("drop", "bootstrap"):
+        seen.clear()
+        steps.clear()
+        tiny_run(scenarios, tmp_path / truncated, *common,
+                 f"algo.self_imitation_truncated={truncated}")  # fmt: skip
+        sil = seen[-1]
+        cut = sil.size >= sil.batch_size and any(s.get("sil/better", 0) > 0 for s in steps)
+        assert steps and cut == (truncated == "bootstrap"), (truncated, sil.size, steps[-3:])
+        if truncated == "drop":
+            assert sil.size == sil.episodes == 0 and all(s == {} for s in steps)
+
+
 @pytest.mark.parametrize(
     ("override", "message"),
     [
