@@ -487,15 +487,31 @@ def test_self_imitation_bootstraps_an_episode_cut_short_with_the_critics_soft_va
                             "action": draws[:, 0]}, [sil.ENTROPY_DRAWS])  # fmt: skip
         q = loss._vmap_qnetworkN0(pairs, loss.qvalue_network_params)
         value = float(q.get("state_action_value").squeeze(-1).amin(0).mean())
-    assert float(sil.soft_value(cut[None])[0]) != value  # other draws, another estimate
     # The cut episode's returns go on past its end with that value, discounted; the
     # crash's stop at its end (sil.ret's rows: env 0's 4 steps, then env 1's 2).
     expected = [sum(0.9**k for k in range(4 - t)) + 0.9 ** (4 - t) * value for t in range(4)]
     assert sil.ret[:4].tolist() == pytest.approx(expected, rel=1e-5)
     assert sil.ret[4:6].tolist() == pytest.approx([1.9, 1.0])
+    # With the entropy bonus (alpha = 1) the soft value is the lower critic less log pi.
+    with torch.no_grad():
+        loss.log_alpha.fill_(0.0)
+        torch.manual_seed(3)
+        with loss.actor_network_params.to_module(loss.actor_network):
+            dist = loss.actor_network.get_dist(TensorDict({"observation": cut[None]}, [1]))
+            draws = dist.sample((sil.ENTROPY_DRAWS,))
+            log_prob = dist.log_prob(draws)[:, 0]
+        pairs["action"] = draws[:, 0]
+        q = loss._vmap_qnetworkN0(pairs, loss.qvalue_network_params)
+        lower = q.get("state_action_value").squeeze(-1).amin(0)
+    torch.manual_seed(3)
+    soft = float(sil.soft_value(cut[None])[0])
+    assert soft == pytest.approx(float((lower - log_prob).mean()), rel=1e-5)
+    assert soft != pytest.approx(float((lower + log_prob).mean()), rel=1e-3)
     _, dropped = _imitating_agent(bootstrap=False)  # the default drops it
     dropped.observe(batch)
     assert dropped.episodes == 1 and dropped.size == 2
+    with pytest.raises(ValueError, match="every_episode=True"):
+        _imitating_agent(every_episode=False, bootstrap=True)
 
 
 def test_self_imitation_pulls_the_actor_only_where_the_return_beat_the_critics():

@@ -481,10 +481,11 @@ def test_self_imitation_bootstrapping_learns_from_the_episodes_the_time_limit_cu
         tiny_run(scenarios, tmp_path / truncated, *common,
                  f"algo.self_imitation_truncated={truncated}")  # fmt: skip
         sil = seen[-1]
-        cut = sil.size >= sil.batch_size and any(s.get("sil/better", 0) > 0 for s in steps)
-        assert steps and cut == (truncated == "bootstrap"), (truncated, sil.size, steps[-3:])
-        if truncated == "drop":
+        assert steps, truncated
+        if truncated == "drop":  # no episode of 3 s ends by itself here
             assert sil.size == sil.episodes == 0 and all(s == {} for s in steps)
+        else:
+            assert sil.episodes > 0 and sil.size >= sil.batch_size and any(steps)
 
 
 @pytest.mark.parametrize(

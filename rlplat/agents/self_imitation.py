@@ -16,8 +16,9 @@ everywhere (the critics average over the episodes that went on to miss). An epis
 (``truncated``: the time limit, or the defender's route flown) is dropped by default: its
 return stops where the critics' value goes on, and would beat it wherever the rest of the
 chase costs. With ``bootstrap=True`` it is kept, its return closed at the cut by the critics'
-soft value of the state it was cut in (as SAC's own target closes a truncated step), so the
-store holds the misses as well as the captures.
+soft value of the state it was cut in (as SAC's target closes a cut-short step, there with the
+target critics, here with the critics the imitation step compares against), so the store holds
+the misses as well as the captures.
 """
 
 from __future__ import annotations
@@ -58,8 +59,9 @@ class SelfImitation:
         device: torch.device | str = "cpu",
     ) -> None:
         self.agent, self.gamma, self.batch_size = agent, float(gamma), int(batch_size)
-        self.every_episode = bool(every_episode)
-        self.bootstrap = self.every_episode and bool(bootstrap)
+        if bootstrap and not every_episode:
+            raise ValueError("bootstrap keeps the episodes cut short: it needs every_episode=True")
+        self.every_episode, self.bootstrap = bool(every_episode), bool(bootstrap)
         net = agent.net
         self.obs = torch.zeros(capacity, net.obs_dim, device=device)
         self.action = torch.zeros(capacity, net.action_dim, device=device)
@@ -113,7 +115,7 @@ class SelfImitation:
     @torch.no_grad()
     def soft_value(self, obs: Tensor) -> Tensor:
         """The critics' soft value of states, ``E_a~pi[min_i Q_i(s, a) - alpha log pi(a | s)]``
-        (the value SAC's target closes a step with), over draws of the policy."""
+        (the form of the value SAC's target closes a step with), over draws of the policy."""
         loss, draws, n = self.agent.loss, self.ENTROPY_DRAWS, len(obs)
         td = TensorDict({"observation": obs}, [n])
         with loss.actor_network_params.to_module(loss.actor_network, preserve_module_state=False):
