@@ -109,6 +109,12 @@ class SelfImitation:
         self.pos, self.size = (self.pos + n) % cap, min(cap, self.size + n)
         self.episodes += 1
 
+    def _policy(self, td: TensorDict):
+        """The actor's action distribution at ``td``'s observations (its current parameters)."""
+        loss = self.agent.loss
+        with loss.actor_network_params.to_module(loss.actor_network, preserve_module_state=False):
+            return loss.actor_network.get_dist(td)
+
     #: Draws of the policy per state that estimate its entropy.
     ENTROPY_DRAWS = 8
 
@@ -118,8 +124,7 @@ class SelfImitation:
         (the form of the value SAC's target closes a step with), over draws of the policy."""
         loss, draws, n = self.agent.loss, self.ENTROPY_DRAWS, len(obs)
         td = TensorDict({"observation": obs}, [n])
-        with loss.actor_network_params.to_module(loss.actor_network, preserve_module_state=False):
-            dist = loss.actor_network.get_dist(td)
+        dist = self._policy(td)
         actions = dist.sample((draws,))  # (draws, n, action)
         log_prob = dist.log_prob(actions)
         pairs = TensorDict(
@@ -141,8 +146,7 @@ class SelfImitation:
         the soft value after the last step (0 where the episode ended by itself)."""
         loss = self.agent.loss
         td = TensorDict({"observation": obs}, [len(obs)])
-        with loss.actor_network_params.to_module(loss.actor_network, preserve_module_state=False):
-            dist = loss.actor_network.get_dist(td)
+        dist = self._policy(td)
         draws = dist.sample((self.ENTROPY_DRAWS,))
         entropy = -dist.log_prob(draws).mean(0)
         bonus = (loss.log_alpha.exp() * entropy).tolist()
@@ -169,8 +173,7 @@ class SelfImitation:
         better = advantage > 0
         if not bool(better.any()):
             return {"sil/better": 0.0}
-        with loss.actor_network_params.to_module(loss.actor_network, preserve_module_state=False):
-            dist = loss.actor_network.get_dist(td)
+        dist = self._policy(td)
         # The deterministic action before its clamp onto [-1, 1]: where the action taken is a
         # bound, any action in the margin beyond it flies the same and costs nothing.
         taken, flown = dist.deterministic_sample, td["action"]
